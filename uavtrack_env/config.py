@@ -45,7 +45,9 @@ class CameraConfig:
     """Nearest depth (m) at which a point counts as in front of the camera."""
 
     def __post_init__(self) -> None:
-        _require(self.fx > 0 and self.fy > 0, f"focal lengths must be > 0, got {self.fx}, {self.fy}")
+        _require(
+            self.fx > 0 and self.fy > 0, f"focal lengths must be > 0, got {self.fx}, {self.fy}"
+        )
         _require(self.width > 0 and self.height > 0, "image size must be positive")
         _require(self.near > 0, f"near must be > 0, got {self.near}")
 
@@ -206,7 +208,9 @@ class DetectorConfig:
             _require(getattr(self, name) >= 0, f"{name} must be >= 0")
         _require(0 <= self.dropout_prob <= 1, "dropout_prob must lie in [0, 1]")
         _require(0 < self.min_visible_fraction <= 1, "min_visible_fraction must lie in (0, 1]")
-        _require(all(k >= 1 for k in self.samples_per_axis), "samples_per_axis entries must be >= 1")
+        _require(
+            all(k >= 1 for k in self.samples_per_axis), "samples_per_axis entries must be >= 1"
+        )
 
     @classmethod
     def noiseless(cls) -> DetectorConfig:
@@ -341,9 +345,7 @@ class EnvConfig:
         fields = {f.name: f for f in dataclasses.fields(cls)}
         unknown = sorted(set(kwargs) - set(fields))
         if unknown:
-            raise TypeError(
-                f"unknown argument(s) {unknown}; valid arguments are {sorted(fields)}"
-            )
+            raise TypeError(f"unknown argument(s) {unknown}; valid arguments are {sorted(fields)}")
         values = {}
         for name, value in kwargs.items():
             default = getattr(cls(), name) if name in _NESTED else None

@@ -57,7 +57,10 @@ def project(points_cam: np.ndarray, K: np.ndarray) -> np.ndarray:
     """Pinhole projection of camera-frame points (..., 3) to pixels (..., 2), eq. (8)."""
     z = points_cam[..., 2:3]
     return np.concatenate(
-        [K[0, 0] * points_cam[..., 0:1] / z + K[0, 2], K[1, 1] * points_cam[..., 1:2] / z + K[1, 2]],
+        [
+            K[0, 0] * points_cam[..., 0:1] / z + K[0, 2],
+            K[1, 1] * points_cam[..., 1:2] / z + K[1, 2],
+        ],
         -1,
     )
 
@@ -115,3 +118,22 @@ def point_box_distance(points: np.ndarray, centers: np.ndarray, half_extents: np
     """
     d = np.abs(points[:, None, :] - centers[None, :, :]) - half_extents[None, :, :]
     return np.linalg.norm(np.maximum(d, 0.0), axis=-1)
+
+
+def segment_hits_boxes(
+    a: np.ndarray, b: np.ndarray, centers: np.ndarray, half_extents: np.ndarray
+) -> np.ndarray:
+    """Which axis-aligned boxes (M, 3) the segment a -> b crosses (slab test): bool (M,)."""
+    if len(centers) == 0:
+        return np.zeros(0, bool)
+    d = np.asarray(b, float) - np.asarray(a, float)
+    lo, hi = centers - half_extents - a, centers + half_extents - a
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv = 1.0 / d
+        t1, t2 = lo * inv, hi * inv
+    parallel = np.abs(d) < 1e-12
+    inside = (lo <= 0.0) & (hi >= 0.0)
+    tmin = np.where(parallel, np.where(inside, -np.inf, np.inf), np.minimum(t1, t2))
+    tmax = np.where(parallel, np.where(inside, np.inf, -np.inf), np.maximum(t1, t2))
+    enter, leave = np.max(tmin, axis=1), np.min(tmax, axis=1)
+    return (enter <= leave) & (leave >= 0.0) & (enter <= 1.0)

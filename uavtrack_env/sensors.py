@@ -1,0 +1,143 @@
+"""Sensors: the geometric bounding-box detector (section II-D) and inter-UAV comms (section IV-B).
+
+The detector stands in for the paper's YOLO network: it projects the car's box corners through
+K (eq. 8) into a bounding box, measures its centre (u, v), the depth d (optical-axis depth Z of the
+car's centre, so x3 = 1/d) and psi (eq. 4), and decides visibility by ray casts from the camera to a
+grid of points inside the car and by the image bounds. Noise and dropouts come from the env's
+generator. Everything is vectorised over the UAVs.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .config import CameraConfig, CommsConfig, DetectorConfig
+from .geometry import image_features, relative_angle, wrap_angle, world_to_cam_vec
+from .target import CAR_HALF_EXTENTS
+from .world import World
+
+
+@dataclass
+class Detections:
+    """One frame of the detector for all n UAVs (arrays with a leading UAV axis)."""
+
+    detected: np.ndarray
+    """(n,) bool: a bounding box was reported."""
+    u: np.ndarray
+    """(n,) measured bounding-box centre U (px); NaN when not detected."""
+    v: np.ndarray
+    """(n,) measured bounding-box centre V (px); NaN when not detected."""
+    depth: np.ndarray
+    """(n,) measured depth d (m); NaN when not detected."""
+    psi: np.ndarray
+    """(n,) measured relative angle (rad); NaN when not detected."""
+    visible_fraction: np.ndarray
+    """(n,) share of the target's sample points that are in the image and not blocked."""
+    blocked_fraction: np.ndarray
+    """(n,) share of the target's sample points whose line of sight is blocked."""
+    true_features: np.ndarray
+    """(n, 4) ground-truth s = [x1, x2, x3, psi] of the car's centre."""
+    in_front: np.ndarray
+    """(n,) bool: the car's centre lies in front of the camera."""
+
+
+def _unit_grid(counts: tuple[int, int, int]) -> np.ndarray:
+    axes = [np.linspace(-0.8, 0.8, k) if k > 1 else np.zeros(1) for k in counts]
+    return np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+
+
+_CORNER_SIGNS = np.array(
+    [[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], float
+)
+
+
+def _to_world(local: np.ndarray, center: np.ndarray, yaw: float) -> np.ndarray:
+    c, s = np.cos(yaw), np.sin(yaw)
+    x, y = local[:, 0], local[:, 1]
+    return np.column_stack([c * x - s * y, s * x + c * y, local[:, 2]]) + center
+
+
+class Detector:
+    """Geometric bounding-box detector with configurable noise, dropouts and occlusion."""
+
+    def __init__(self, camera: CameraConfig, cfg: DetectorConfig) -> None:
+        self.camera = camera
+        self.cfg = cfg
+        self._samples = _unit_grid(cfg.samples_per_axis) * CAR_HALF_EXTENTS
+        self._corners = _CORNER_SIGNS * CAR_HALF_EXTENTS
+
+    def detect(
+        self,
+        world: World,
+        positions: np.ndarray,
+        yaws: np.ndarray,
+        target_center: np.ndarray,
+        target_yaw: float,
+        target_heading: float,
+        rng: np.random.Generator,
+    ) -> Detections:
+        cam, cfg = self.camera, self.cfg
+        n = len(positions)
+        rel_center = world_to_cam_vec(target_center - positions, yaws)
+        feats = image_features(rel_center)
+        psi = relative_angle(positions, target_center, target_heading)
+        true = np.column_stack([feats, psi])
+        in_front = rel_center[:, 2] > cam.near
+
+        points = _to_world(self._samples, target_center, target_yaw)  # (S, 3)
+        s = len(points)
+        rel = world_to_cam_vec(points[None] - positions[:, None], yaws[:, None])  # (n, S, 3)
+        z = rel[..., 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            pu = cam.fx * rel[..., 0] / z + cam.cu
+            pv = cam.fy * rel[..., 1] / z + cam.cv
+        in_image = (z > cam.near) & (pu >= 0) & (pu < cam.width) & (pv >= 0) & (pv < cam.height)
+        reach = world.rays_reach_target(
+            np.repeat(positions, s, axis=0), np.tile(points, (n, 1))
+        ).reshape(n, s)
+        visible = (in_image & reach).mean(axis=1)
+        blocked = (~reach).mean(axis=1)
+
+        corners = _to_world(self._corners, target_center, target_yaw)
+        rc = world_to_cam_vec(corners[None] - positions[:, None], yaws[:, None])  # (n, 8, 3)
+        all_front = np.all(rc[..., 2] > cam.near, axis=1)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            cu = np.clip(cam.fx * rc[..., 0] / rc[..., 2] + cam.cu, 0.0, cam.width)
+            cv = np.clip(cam.fy * rc[..., 1] / rc[..., 2] + cam.cv, 0.0, cam.height)
+        box_u = 0.5 * (cu.min(axis=1) + cu.max(axis=1))
+        box_v = 0.5 * (cv.min(axis=1) + cv.max(axis=1))
+
+        # A fixed number of draws per frame keeps the random stream independent of outcomes.
+        noise = rng.standard_normal((n, 4))
+        dropped = rng.random(n) < cfg.dropout_prob
+        detected = all_front & (visible >= cfg.min_visible_fraction) & ~dropped
+        nan = np.full(n, np.nan)
+        return Detections(
+            detected=detected,
+            u=np.where(detected, box_u + cfg.pixel_noise_std * noise[:, 0], nan),
+            v=np.where(detected, box_v + cfg.pixel_noise_std * noise[:, 1], nan),
+            depth=np.where(
+                detected,
+                np.maximum(rel_center[:, 2] + cfg.depth_noise_std * noise[:, 2], cam.near),
+                nan,
+            ),
+            psi=np.where(detected, wrap_angle(psi + cfg.psi_noise_std * noise[:, 3]), nan),
+            visible_fraction=visible,
+            blocked_fraction=blocked,
+            true_features=true,
+            in_front=in_front,
+        )
+
+
+def receive_positions(
+    positions: np.ndarray, alive: np.ndarray, cfg: CommsConfig, rng: np.random.Generator
+) -> np.ndarray:
+    """received[i, j]: UAV i got UAV j's position this step (within R_c, not dropped), (n, n)."""
+    n = len(positions)
+    dist = np.linalg.norm(positions[:, None] - positions[None], axis=-1)
+    lost = rng.random((n, n)) < cfg.drop_prob
+    received = (dist <= cfg.r_c) & ~lost & alive[:, None] & alive[None, :]
+    np.fill_diagonal(received, False)
+    return received
