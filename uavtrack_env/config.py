@@ -100,7 +100,7 @@ class NMPCConfig:
     dt: float = DT
     """Sampling time of the prediction model (section VI-A, 80 Hz)."""
     q_s: tuple[float, float, float, float] = (1.0, 1.0, 100.0, 1.0)
-    """Diagonal of Q_s, stage feature weight (Table III; its off-diagonal ones make it indefinite)."""
+    """Diagonal of Q_s, stage feature weight (Table III; as printed it is indefinite)."""
     r_u: tuple[float, float, float, float] = (0.02, 0.03, 0.01, 0.3)
     """Diagonal of R_u, input weight (Table III; diagonal intent)."""
     w_s: tuple[float, float, float, float] = (1.0, 1.0, 100.0, 1.0)

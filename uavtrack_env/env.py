@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, ClassVar
 
 import gymnasium
 import numpy as np
@@ -15,7 +15,7 @@ from .dynamics import integrate
 from .geometry import occlusion_angle, point_box_distance, world_to_cam_vec
 from .rewards import connected_components_ok, effort_term, tracking_term
 from .scenarios import Layout, make_layout
-from .sensors import Detector, Detections, receive_positions
+from .sensors import Detections, Detector, receive_positions
 from .target import CAR_HALF_EXTENTS, TargetMotion
 from .world import World
 
@@ -32,10 +32,16 @@ OWN_FIELDS = (
     ("altitude", 1, "own z (m)"),
     ("reference", 5, "x1*, x2*, x3*, sin psi*, cos psi* of this agent's reference s*"),
 )
+WORLD_LIMIT = 1.0e4
+"""Bound (m, m/s) of the state vector's entries."""
+ALTITUDE_LIMIT = 100.0
+"""Observed altitude is clipped to [0, ALTITUDE_LIMIT] m."""
+OBSTACLE_RANGE = 100.0
+"""Observed obstacle offsets and sizes are clipped to +-OBSTACLE_RANGE m."""
 NEIGHBOUR_FIELDS = 4
 """Per neighbour: relative position in the camera frame (3, m) and a mask (1)."""
 OBSTACLE_FIELDS = 7
-"""Per obstacle: centre relative position in the camera frame (3, m), half extents (3, m), mask (1)."""
+"""Per obstacle: relative centre in the camera frame (3, m), half extents (3, m), mask (1)."""
 
 
 class UAVTrackEnv(ParallelEnv):
@@ -63,8 +69,8 @@ class UAVTrackEnv(ParallelEnv):
     **Cost and violations** (``info[agent]``): ``violations = {collision, disconnection,
     occlusion}`` and ``cost`` = how many are true. Collision: touching an obstacle, the car or the
     ground (PyBullet contacts), or another UAV closer than R_s. Disconnection: the UAVs' graph with
-    edges <= R_c is not connected. Occlusion: obstacles (or UAVs) block more of the car's sample points
-    than the detector can tolerate.
+    edges <= R_c is not connected. Occlusion: obstacles (or UAVs) block more of the car's sample
+    points than the detector can tolerate.
 
     **Episode end**: terminated on collision (that agent or all, ``terminate_on_collision``);
     truncated after ``max_cycles`` steps (80 Hz).
@@ -74,7 +80,7 @@ class UAVTrackEnv(ParallelEnv):
     **Version history**: v0: initial release.
     """
 
-    metadata = {
+    metadata: ClassVar[dict[str, Any]] = {
         "render_modes": ["rgb_array", "human"],
         "name": "uavtrack_v0",
         "is_parallelizable": True,
@@ -94,12 +100,15 @@ class UAVTrackEnv(ParallelEnv):
             + cfg.n_neighbours * NEIGHBOUR_FIELDS
             + cfg.n_obstacles_obs * OBSTACLE_FIELDS
         )
-        obs_space = gymnasium.spaces.Box(-np.inf, np.inf, (self.n_obs,), np.float32)
+        self._obs_low, self._obs_high = self._observation_bounds()
+        obs_space = gymnasium.spaces.Box(self._obs_low, self._obs_high, dtype=np.float32)
         self._obs_spaces = {a: obs_space for a in self.possible_agents}
         self._act_spaces = {
             a: gymnasium.spaces.Box(-1.0, 1.0, (4,), np.float32) for a in self.possible_agents
         }
-        self.state_space = gymnasium.spaces.Box(-np.inf, np.inf, (9 * cfg.n_uavs + 8,), np.float32)
+        self.state_space = gymnasium.spaces.Box(
+            -WORLD_LIMIT, WORLD_LIMIT, (9 * cfg.n_uavs + 8,), np.float32
+        )
         self.world = World(gui=self.render_mode == "human")
         self.detector = Detector(cfg.camera, cfg.detector)
         self.np_random: np.random.Generator | None = None
@@ -118,6 +127,44 @@ class UAVTrackEnv(ParallelEnv):
         if agent not in self._index:
             raise KeyError(f"unknown agent {agent!r}; agents are {self.possible_agents}")
         return agent
+
+    def _observation_bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """Finite bounds per observation entry; values beyond them are clipped (documented)."""
+        cfg = self.config
+        v, w, r_c = 2.0 * cfg.limits.v_max, 2.0 * cfg.limits.omega_max, cfg.comms.r_c
+        own_hi = [
+            5,
+            5,
+            1 / cfg.camera.near,
+            1,
+            1,
+            1,
+            1,
+            v,
+            v,
+            v,
+            w,
+            1,
+            1,
+            ALTITUDE_LIMIT,
+            5,
+            5,
+            1 / cfg.camera.near,
+            1,
+            1,
+        ]
+        own_lo = [-5, -5, 0, -1, -1, 0, 0, -v, -v, -v, -w, -1, -1, 0, -5, -5, 0, -1, -1]
+        nb_hi, nb_lo = (
+            [r_c, r_c, r_c, 1] * cfg.n_neighbours,
+            [-r_c, -r_c, -r_c, 0] * cfg.n_neighbours,
+        )
+        d = OBSTACLE_RANGE
+        ob_hi = [d, d, d, d, d, d, 1] * cfg.n_obstacles_obs
+        ob_lo = [-d, -d, -d, 0, 0, 0, 0] * cfg.n_obstacles_obs
+        low = np.array(own_lo + nb_lo + ob_lo, np.float32)
+        high = np.array(own_hi + nb_hi + ob_hi, np.float32)
+        assert low.shape == (self.n_obs,)
+        return low, high
 
     def observation_fields(self) -> list[tuple[str, int, str]]:
         """(name, size, meaning) of each block of the observation vector, in order."""
@@ -167,7 +214,7 @@ class UAVTrackEnv(ParallelEnv):
         return (obs, rewards, *self._episode_end(collided), infos)
 
     def _validate(self, actions: dict[str, Any]) -> tuple[np.ndarray, np.ndarray]:
-        """Check every action before anything changes; returns u (n, 4) in SI units and clip flags."""
+        """Check every action before anything changes; return u (n, 4) in SI units, clip flags."""
         if self.np_random is None:
             raise RuntimeError("step() called before reset(); call env.reset(seed=...) first")
         if not self.agents:
@@ -416,7 +463,7 @@ class UAVTrackEnv(ParallelEnv):
             if m < k:
                 ob = np.concatenate([ob, np.zeros((n, k - m, OBSTACLE_FIELDS))], 1)
             blocks.append(ob.reshape(n, -1))
-        return np.concatenate(blocks, 1).astype(np.float32)
+        return np.clip(np.concatenate(blocks, 1), self._obs_low, self._obs_high).astype(np.float32)
 
     def _episode_end(self, collided: np.ndarray):
         cfg = self.config
@@ -445,7 +492,8 @@ class UAVTrackEnv(ParallelEnv):
         )
         h = self.target.heading
         tgt = np.concatenate([self.target.center(), [np.sin(h), np.cos(h)], self.target.velocity()])
-        return np.concatenate([uavs.ravel(), tgt]).astype(np.float32)
+        state = np.concatenate([uavs.ravel(), tgt])
+        return np.clip(state, -WORLD_LIMIT, WORLD_LIMIT).astype(np.float32)
 
     def render(self) -> np.ndarray | None:
         if self.render_mode is None:

@@ -8,7 +8,8 @@ place them from the text, relative to the target's Fig. 11 path:
   UAV3's side (right) at 32-48 s, alternating 4.5 m and 6 m from the path, i.e. between the UAV and
   the target (occlusion) and on the UAV's route (collision).
 * B: twelve 1 m cubes on both sides every 4 s from 6 s to 50 s, 4 m and 5.5 m from the path.
-* C: B's footprints with 2.5 m tall boxes ("larger tracking errors ... due to the higher obstacles").
+* C: B's footprints with 2.5 m tall boxes ("larger tracking errors ... due to the higher
+  obstacles").
 """
 
 from __future__ import annotations
@@ -27,7 +28,7 @@ PAPER_ALTITUDE = 0.85
 PAPER_REFERENCE = (0.0, 0.188, 1.0 / 7.0)
 """[x1*, x2*, x3*] of every UAV's reference s^{i,*} (section VI-A)."""
 PAPER_PSI_REF = (math.pi / 2, math.pi, -math.pi / 2)
-"""psi* of UAV1-3 under eq. (4) (the paper prints 0 for UAV2, contradicting its start behind the car)."""
+"""psi* of UAV1-3 under eq. (4); the paper prints 0 for UAV2, which starts behind the car (pi)."""
 
 # Table VI: (x, y, heading) of UAV1-3 for each scenario and initial condition.
 TABLE_VI_INITIAL = {
@@ -66,7 +67,7 @@ def _boxes_along_path(
     """Boxes at signed lateral ``offsets`` (left > 0) from the path poses at ``times``."""
     centers = []
     for t, off in zip(times, offsets, strict=True):
-        x, y, th = path[int(round(t / DT))]
+        x, y, th = path[round(t / DT)]
         centers.append([x - off * math.sin(th), y + off * math.cos(th), height / 2])
     half = np.tile([size / 2, size / 2, height / 2], (len(times), 1))
     return np.array(centers, float), half
@@ -123,9 +124,9 @@ def formation_references(n: int, x2: float = PAPER_REFERENCE[1]) -> np.ndarray:
 def random_layout(rng: np.random.Generator, cfg: EnvConfig) -> Layout:
     """A seeded cluttered world whose start is feasible.
 
-    Guarantees: the target's corridor is free; every UAV starts at its formation pose (small jitter),
-    clear of obstacles by 1.5 m and of other UAVs by R_s + 0.4 m, all UAVs connected within R_c, and no
-    obstacle on the line of sight from any UAV to the target's centre or corners.
+    Guarantees: the target's corridor is free; every UAV starts at its formation pose (small
+    jitter), clear of obstacles by 1.5 m and of other UAVs by R_s + 0.4 m, all UAVs connected
+    within R_c, and no obstacle on the line of sight from any UAV to the car's centre or corners.
     """
     rw = cfg.random_world
     duration = cfg.max_cycles * DT
@@ -156,7 +157,10 @@ def random_layout(rng: np.random.Generator, cfg: EnvConfig) -> Layout:
             gap = np.abs(positions - c) - half
             if np.min(np.linalg.norm(np.maximum(gap, 0.0), axis=1)) < 1.5:
                 continue
-            if any(np.all(np.abs(c - oc) < half + oh + 0.5) for oc, oh in zip(centers, halves)):
+            if any(
+                np.all(np.abs(c - oc) < half + oh + 0.5)
+                for oc, oh in zip(centers, halves, strict=True)
+            ):
                 continue
             centers.append(c)
             halves.append(half)

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .config import CameraConfig, CommsConfig, DetectorConfig
-from .geometry import image_features, relative_angle, wrap_angle, world_to_cam_vec
+from .geometry import image_features, relative_angle, world_to_cam_vec, wrap_angle
 from .target import CAR_HALF_EXTENTS
 from .world import World
 

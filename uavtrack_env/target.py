@@ -1,11 +1,11 @@
 """Target (car) motion: a kinematic unicycle driven by a program of (speed, turn-rate) segments.
 
-The paper's program (Fig. 11) reads: 0.5 m/s straight for 10 s, "turned at -0.1 m/s^2" from 10 s to
-15 s, straight to 35 s, "turned at 0.1 m/s^2" to 40 s, then straight. We read the turn accelerations as
-lateral (centripetal) accelerations at constant speed 0.5 m/s, so the turn rate is a / v = -0.2 rad/s
-then +0.2 rad/s: two opposite turns of 1 rad (57 deg), a z-shaped path, the speed staying 0.5 m/s as
-the caption says ("kept moving at 0.5 m/s"). Random programs are piecewise-constant turn rates with
-smooth (first-order) transitions, bounded speed and turn rate.
+The paper's program (Fig. 11) reads: 0.5 m/s straight for 10 s, "turned at -0.1 m/s^2" from 10 s
+to 15 s, straight to 35 s, "turned at 0.1 m/s^2" to 40 s, then straight. We read the turn
+accelerations as lateral (centripetal) accelerations at constant speed 0.5 m/s, so the turn rate is
+a / v = -0.2 rad/s then +0.2 rad/s: two opposite turns of 1 rad (57 deg), a z-shaped path, the
+speed staying 0.5 m/s as the caption says ("kept moving at 0.5 m/s"). Random programs are
+piecewise-constant turn rates with smooth (first-order) transitions, bounded speed and turn rate.
 """
 
 from __future__ import annotations
@@ -114,7 +114,7 @@ def sample_path(
 ) -> np.ndarray:
     """Poses (T, 3) = (x, y, heading) of a program integrated for ``duration`` seconds."""
     motion = TargetMotion(program, x, y, heading)
-    out = np.empty((int(round(duration / dt)) + 1, 3))
+    out = np.empty((round(duration / dt) + 1, 3))
     for k in range(out.shape[0]):
         out[k] = motion.x, motion.y, motion.heading
         motion.step(dt)

@@ -1,0 +1,431 @@
+"""CasADi NMPC of section III: model (15), error signal (16)-(17), OCP (18)-(19).
+
+The NLP (direct multiple shooting, N_p = 50 nodes) is built once in ``NMPC.__init__`` with
+``nlpsol`` and solved every control step from the shifted previous solution.
+
+Decisions where the paper is silent or inconsistent (see the module-level notes below and
+docs/conventions.md):
+
+* psi is fed relative to its reference, ``psi* + wrap(psi - psi*)``, so the cost sees the
+  wrapped angle error; psi is not bounded (Table I's [0, 180 deg] contradicts psi* = -pi/2).
+* Table I's bounds on x1, x2, x3 are soft with an exact L1 penalty, so a state outside them
+  (target at the image edge, too close) never makes the NLP infeasible. Table II is hard.
+* Error signal (16): eps_k = s_k - s_m,k with s_m,k the model's one-step prediction made at
+  the previous step from the state and input of that step; (19)'s ``s_m,k = s_k`` is read as
+  the initial node of the new prediction. s_d = s* - eps_k is constant over the horizon (17).
+* u_d of (19): u_d,k = [vq_cam, 0], u_d,k+n+1 = u_d,k+n + [aq_cam dt, 0]; the target velocity
+  inside the prediction model follows the same ramp.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from typing import Literal
+
+import casadi as ca
+import numpy as np
+
+from uavtrack_env.config import ControlLimits, FeatureBounds, NMPCConfig
+from uavtrack_env.geometry import feature_rates, wrap_angle
+
+_TWO_PI = 2.0 * math.pi
+
+
+@dataclass(frozen=True)
+class NMPCOptions:
+    """Implementation tunables of the NMPC that Table III does not fix."""
+
+    integrator: Literal["rk4", "euler"] = "rk4"
+    """Discretisation of eq. (15) over one step dt to get F_m of eq. (19)."""
+    error_signal: bool = True
+    """Use the error signal eps_k of eq. (16) in s_d = s* - eps_k of eq. (17); False: s_d = s*."""
+    eps_max: tuple[float, float, float, float] = (0.1, 0.1, 0.05, 0.2)
+    """Cap on |eps_k| per feature (not in the paper): a UKF jump must not move s_d far."""
+    slack_weight: float = 1000.0
+    """L1 penalty on Table I bound violations (exact penalty; not in the paper)."""
+    hessian: Literal["gauss-newton", "exact"] = "gauss-newton"
+    """SQP/RTI Hessian: the constant Hessian of cost (18) ('gauss-newton') or the exact one."""
+    qpsol: str = "qrqp"
+    """CasADi QP plugin used by 'sqp' and 'rti'."""
+    tol: float = 1e-6
+    """Primal and dual stopping tolerance of the 'sqp' and 'ipopt' solvers."""
+    expand: bool = True
+    """Expand the MX graph to SX (faster evaluation)."""
+    jit: bool = False
+    """JIT-compile the NLP functions with the system C compiler (slower build)."""
+    max_fallback_steps: int = 10
+    """Consecutive failures served from the shifted previous plan before hovering."""
+
+    def __post_init__(self) -> None:
+        if self.integrator not in ("rk4", "euler"):
+            raise ValueError(f"integrator must be 'rk4' or 'euler', got {self.integrator!r}")
+        if self.hessian not in ("gauss-newton", "exact"):
+            raise ValueError(f"hessian must be 'gauss-newton' or 'exact', got {self.hessian!r}")
+        if len(self.eps_max) != 4 or any(e < 0 for e in self.eps_max):
+            raise ValueError(f"eps_max must be 4 non-negative numbers, got {self.eps_max}")
+        if self.slack_weight <= 0 or self.tol <= 0:
+            raise ValueError("slack_weight and tol must be > 0")
+        if self.max_fallback_steps < 0:
+            raise ValueError("max_fallback_steps must be >= 0")
+
+
+@dataclass
+class NMPCResult:
+    """Outcome of one NMPC step."""
+
+    u: np.ndarray
+    """First input u_k (4,), camera frame, SI units, within Table II."""
+    success: bool
+    """True when the solver converged (or, for 'rti', when its single QP solved)."""
+    status: str
+    """Solver return status, or 'fallback-shifted' / 'fallback-hover'."""
+    iterations: int
+    solve_time_s: float
+    predicted_s: np.ndarray
+    """Predicted features (N_p+1, 4), psi relative to the reference (psi* +- pi)."""
+    solver_status: str = ""
+    """Raw solver status, also on a fallback."""
+    eps: np.ndarray = field(default_factory=lambda: np.zeros(4))
+    """Error signal eps_k of eq. (16) used in this solve."""
+
+
+def _vec(name: str, value, n: int) -> np.ndarray:
+    arr = np.asarray(value, dtype=float)
+    if arr.shape != (n,):
+        raise ValueError(f"{name} must have shape ({n},), got {arr.shape}")
+    if not np.all(np.isfinite(arr)):
+        raise ValueError(f"{name} must be finite, got {arr}")
+    return arr
+
+
+def _discrete_model(dt: float, integrator: str) -> ca.Function:
+    """F_m of eq. (19): eq. (15) integrated over one sampling time dt."""
+    s, u, vq = ca.SX.sym("s", 4), ca.SX.sym("u", 4), ca.SX.sym("vq", 3)
+
+    def f(x):
+        return ca.vertcat(*feature_rates(x, u, vq))
+
+    if integrator == "euler":
+        s_next = s + dt * f(s)
+    else:
+        k1 = f(s)
+        k2 = f(s + dt / 2 * k1)
+        k3 = f(s + dt / 2 * k2)
+        k4 = f(s + dt * k3)
+        s_next = s + dt / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+    return ca.Function("F_m", [s, u, vq], [s_next], ["s", "u", "vq"], ["s_next"])
+
+
+class NMPC:
+    """The tracking NMPC of eqs. (18)-(19) for one UAV; the NLP is built once here.
+
+    ``solve(s, vq_cam, aq_cam)`` returns the first optimal input; a solver failure falls back to
+    the shifted previous plan, else to hovering with the target (u = [vq_cam, 0], clipped).
+    Solvers: 'ipopt' (the paper's), 'sqp' (sqpmethod + qrqp, Gauss-Newton Hessian,
+    warm-started) and 'rti' (one SQP iteration per step).
+    """
+
+    def __init__(
+        self,
+        reference: np.ndarray,
+        cfg: NMPCConfig = NMPCConfig(),  # noqa: B008 (frozen dataclass)
+        limits: ControlLimits = ControlLimits(),  # noqa: B008
+        bounds: FeatureBounds = FeatureBounds(),  # noqa: B008
+        options: NMPCOptions | None = None,
+        **overrides,
+    ) -> None:
+        self.reference = _vec("reference", reference, 4).copy()
+        if cfg.solver not in ("sqp", "ipopt", "rti"):
+            raise ValueError(f"solver must be 'sqp', 'ipopt' or 'rti', got {cfg.solver!r}")
+        if options is None:
+            options = NMPCOptions(**overrides)
+        elif overrides:
+            raise TypeError(f"pass either options or keyword overrides, not both: {overrides}")
+        self.cfg, self.limits, self.bounds, self.options = cfg, limits, bounds, options
+        self.N = cfg.horizon
+        self._F = _discrete_model(cfg.dt, options.integrator)
+        self._build()
+        self.reset()
+
+    # ------------------------------------------------------------------ build
+    def _build(self) -> None:
+        N, cfg, opt = self.N, self.cfg, self.options
+        # Stage-wise decision vector: x_0, u_0, x_1, sig_1, u_1, ..., x_N, sig_N.
+        names, sizes = [], []
+        for n in range(N + 1):
+            names.append(("x", n))
+            sizes.append(4)
+            if n >= 1:
+                names.append(("sig", n))
+                sizes.append(3)
+            if n < N:
+                names.append(("u", n))
+                sizes.append(4)
+        offsets = np.concatenate([[0], np.cumsum(sizes)])
+        index = {key: np.arange(offsets[i], offsets[i + 1]) for i, key in enumerate(names)}
+        nw = int(offsets[-1])
+        self._ix = np.stack([index[("x", n)] for n in range(N + 1)])  # (N+1, 4)
+        self._iu = np.stack([index[("u", n)] for n in range(N)])  # (N, 4)
+        self._isig = np.stack([index[("sig", n)] for n in range(1, N + 1)])  # (N, 3)
+
+        w = ca.MX.sym("w", nw)
+        # Parameters: s_k (4), s_d (4), vq_cam (3), aq_cam (3).
+        p = ca.MX.sym("p", 14)
+        s0, s_d, vq, aq = p[0:4], p[4:8], p[8:11], p[11:14]
+        Q, R, W = (ca.diag(ca.DM(v)) for v in (cfg.q_s, cfg.r_u, cfg.w_s))
+        lo = np.array([self.bounds.x1[0], self.bounds.x2[0], self.bounds.x3[0]])
+        hi = np.array([self.bounds.x1[1], self.bounds.x2[1], self.bounds.x3[1]])
+
+        def X(n):
+            return w[int(self._ix[n, 0]) : int(self._ix[n, 0]) + 4]
+
+        def U(n):
+            return w[int(self._iu[n, 0]) : int(self._iu[n, 0]) + 4]
+
+        def SIG(n):
+            return w[int(self._isig[n - 1, 0]) : int(self._isig[n - 1, 0]) + 3]
+
+        cost = 0
+        g, lbg, ubg = [X(0) - s0], [np.zeros(4)], [np.zeros(4)]  # (19): s_m,k = s_k
+        for n in range(N):
+            vq_n = vq + aq * (n * cfg.dt)  # (19): u_d,k+n = u_d,k + n [a_q dt, 0]
+            u_d = ca.vertcat(vq_n, 0)
+            e_s, e_u = X(n) - s_d, U(n) - u_d
+            cost += ca.bilin(Q, e_s, e_s) + ca.bilin(R, e_u, e_u)  # stage cost of (18)
+            g.append(X(n + 1) - self._F(X(n), U(n), vq_n))  # (19): s_m,k+n+1 = F_m(...)
+            lbg.append(np.zeros(4))
+            ubg.append(np.zeros(4))
+            # Table I as soft bounds: lo - sig <= x_{1:3} <= hi + sig, sig >= 0, L1 penalty.
+            xs, sig = X(n + 1)[0:3], SIG(n + 1)
+            g += [xs + sig, xs - sig]
+            lbg += [lo, np.full(3, -np.inf)]
+            ubg += [np.full(3, np.inf), hi]
+            cost += opt.slack_weight * ca.sum1(sig)
+        e_N = X(N) - s_d
+        cost += ca.bilin(W, e_N, e_N)  # terminal cost of (18)
+        g = ca.vertcat(*g)
+        self._lbg, self._ubg = np.concatenate(lbg), np.concatenate(ubg)
+        ng = g.shape[0]
+
+        lbx, ubx = np.full(nw, -np.inf), np.full(nw, np.inf)
+        umax = self.limits.scale
+        lbx[self._iu] = -umax  # Table II, hard
+        ubx[self._iu] = umax
+        lbx[self._isig] = 0.0
+        self._lbx, self._ubx = lbx, ubx
+        self._nw, self._ng = nw, ng
+
+        # Warm start by shifting one stage: new node n takes old node n+1 (last one repeated).
+        shift_w = np.arange(nw)
+        for n in range(N + 1):
+            m = min(n + 1, N)
+            shift_w[self._ix[n]] = self._ix[m]
+            if n < N:
+                shift_w[self._iu[n]] = self._iu[min(n + 1, N - 1)]
+            if n >= 1:
+                shift_w[self._isig[n - 1]] = self._isig[m - 1]
+        self._shift_w = shift_w
+        # g rows: 4 initial, then per stage 4 dynamics + 6 soft bounds.
+        shift_g = np.arange(ng)
+        for n in range(N):
+            m = min(n + 1, N - 1)
+            shift_g[4 + 10 * n : 14 + 10 * n] = np.arange(4 + 10 * m, 14 + 10 * m)
+        self._shift_g = shift_g
+
+        nlp = {"x": w, "p": p, "f": cost, "g": g}
+        common: dict = {"print_time": False, "expand": opt.expand, "error_on_fail": False}
+        if opt.jit:
+            common.update(jit=True, compiler="shell", jit_options={"flags": ["-O1"]})
+        solver = self.cfg.solver
+        if solver == "ipopt":
+            plug = "ipopt"
+            sopts = {
+                **common,
+                "ipopt.print_level": 0,
+                "ipopt.sb": "yes",
+                "ipopt.tol": opt.tol,
+                "ipopt.max_iter": max(cfg.max_iter, 100),
+                "ipopt.warm_start_init_point": "yes",
+                "ipopt.mu_init": 1e-3,
+            }
+        else:
+            plug = "sqpmethod"
+            sopts = {
+                **common,
+                "qpsol": opt.qpsol,
+                "print_header": False,
+                "print_iteration": False,
+                "print_status": False,
+                "tol_pr": opt.tol,
+                "tol_du": opt.tol,
+                "max_iter": 1 if solver == "rti" else cfg.max_iter,
+                "qpsol_options": self._qp_options(opt.qpsol),
+            }
+            if opt.hessian == "gauss-newton":
+                sopts["hess_lag"] = self._gauss_newton_hessian(nlp)
+            else:
+                sopts["convexify_strategy"] = "regularize"
+        self._solver = ca.nlpsol("nmpc", plug, nlp, sopts)
+        self._lbx_dm, self._ubx_dm = ca.DM(lbx), ca.DM(ubx)
+        self._lbg_dm, self._ubg_dm = ca.DM(self._lbg), ca.DM(self._ubg)
+
+    @staticmethod
+    def _qp_options(qpsol: str) -> dict:
+        base: dict = {"error_on_fail": False}
+        if qpsol == "qrqp":
+            base.update(print_iter=False, print_header=False, print_info=False)
+        elif qpsol in ("osqp", "proxqp", "daqp", "hpipm", "qpoases"):
+            base["print_time"] = False
+            if qpsol == "qpoases":
+                base["printLevel"] = "none"
+            if qpsol == "osqp":
+                base["osqp"] = {"verbose": False}
+        return base
+
+    @staticmethod
+    def _gauss_newton_hessian(nlp: dict) -> ca.Function:
+        """Hessian of cost (18) only: constant, positive semidefinite, convex QPs."""
+        w, p = nlp["x"], nlp["p"]
+        lam_f = ca.MX.sym("lam_f")
+        lam_g = ca.MX.sym("lam_g", nlp["g"].shape[0])
+        H = ca.triu(lam_f * ca.hessian(nlp["f"], w)[0])
+        return ca.Function(
+            "gn_hess", [w, p, lam_f, lam_g], [H], ["x", "p", "lam_f", "lam_g"], ["hess"]
+        ).expand()
+
+    # ------------------------------------------------------------------ run
+    def reset(self) -> None:
+        """Forget the warm start, the last plan and the error signal."""
+        self._w: np.ndarray | None = None
+        self._lam_g: np.ndarray | None = None
+        self._lam_x: np.ndarray | None = None
+        self._fallback_count = 0
+        self._s_pred: np.ndarray | None = None  # s_m,k of (16), psi relative to psi*
+        self._last: tuple[np.ndarray, np.ndarray] | None = None  # (s_rel, vq) of last step
+
+    def relative_state(self, s: np.ndarray) -> np.ndarray:
+        """s with psi replaced by psi* + wrap(psi - psi*), so s - s* is the wrapped error."""
+        out = np.array(s, dtype=float)
+        out[3] = self.reference[3] + float(wrap_angle(out[3] - self.reference[3]))
+        return out
+
+    def predict_one_step(self, s: np.ndarray, u: np.ndarray, vq_cam: np.ndarray) -> np.ndarray:
+        """F_m(s, u) of eq. (19) with target velocity vq_cam (numpy in, numpy out)."""
+        return np.asarray(self._F(s, u, vq_cam)).ravel()
+
+    def solve(
+        self,
+        s: np.ndarray,
+        vq_cam: np.ndarray,
+        aq_cam: np.ndarray | None = None,
+        u_applied: np.ndarray | None = None,
+    ) -> NMPCResult:
+        """One NMPC step at time t_k.
+
+        s: UKF feature estimate [x1, x2, x3, psi] (psi in any wrap, x3 > 0); vq_cam, aq_cam:
+        target velocity and acceleration in the camera frame (for u_d of (19)); u_applied: the
+        input actually applied at the previous step if it differs from the NMPC's (e.g. after
+        the CBF shield), used for the one-step prediction s_m,k of the error signal (16).
+        """
+        s = _vec("s", s, 4)
+        if s[2] <= 0:
+            raise ValueError(f"s[2] = x3 = 1/Z must be > 0 (target in front), got {s[2]}")
+        vq = _vec("vq_cam", vq_cam, 3)
+        aq = np.zeros(3) if aq_cam is None else _vec("aq_cam", aq_cam, 3)
+        if u_applied is not None:
+            u_applied = _vec("u_applied", u_applied, 4)
+        t0 = time.perf_counter()
+        s_rel = self.relative_state(s)
+
+        # Error signal (16)-(17).
+        eps = np.zeros(4)
+        if self.options.error_signal:
+            if u_applied is not None and self._last is not None:
+                self._s_pred = self.predict_one_step(self._last[0], u_applied, self._last[1])
+            if self._s_pred is not None:
+                eps = s_rel - self._s_pred
+                eps[3] = float(wrap_angle(eps[3]))
+                cap = np.asarray(self.options.eps_max)
+                eps = np.clip(eps, -cap, cap)
+        s_d = self.reference - eps
+        p = np.concatenate([s_rel, s_d, vq, aq])
+
+        if self._w is None:
+            w0 = self._cold_start(s_rel, vq, aq)
+            args = {"x0": w0}
+        else:
+            w0 = self._w[self._shift_w]
+            w0[self._ix[0]] = s_rel
+            args = {
+                "x0": w0,
+                "lam_g0": self._lam_g[self._shift_g],
+                "lam_x0": self._lam_x[self._shift_w],
+            }
+        args.update(p=p, lbx=self._lbx_dm, ubx=self._ubx_dm, lbg=self._lbg_dm, ubg=self._ubg_dm)
+
+        status, iters, ok = "exception", 0, False
+        try:
+            sol = self._solver.call(args)
+            stats = self._solver.stats()
+            status = str(stats.get("return_status", "unknown"))
+            iters = int(stats.get("iter_count", 0))
+            ok = bool(stats.get("success", False))
+            if (
+                self.cfg.solver == "rti"
+                and stats.get("unified_return_status") == "SOLVER_RET_LIMITED"
+            ):
+                ok = True  # one SQP iteration is the point of RTI
+            w_opt = np.asarray(sol["x"]).ravel()
+            ok = ok and bool(np.all(np.isfinite(w_opt)))
+        except RuntimeError as err:  # a plugin raising despite error_on_fail=False
+            status = f"exception: {err}"
+
+        if ok:
+            self._w = w_opt
+            self._lam_g = np.asarray(sol["lam_g"]).ravel()
+            self._lam_x = np.asarray(sol["lam_x"]).ravel()
+            self._fallback_count = 0
+            X = w_opt[self._ix]
+            u = np.clip(w_opt[self._iu[0]], -self.limits.scale, self.limits.scale)
+            result_status = status
+        else:
+            u, X, result_status = self._fallback(s_rel, vq)
+        self._s_pred = self.predict_one_step(s_rel, u, vq) if self.options.error_signal else None
+        self._last = (s_rel, vq)
+        return NMPCResult(
+            u=u,
+            success=ok,
+            status=result_status,
+            iterations=iters,
+            solve_time_s=time.perf_counter() - t0,
+            predicted_s=X,
+            solver_status=status,
+            eps=eps,
+        )
+
+    def _cold_start(self, s_rel: np.ndarray, vq: np.ndarray, aq: np.ndarray) -> np.ndarray:
+        """Initial guess: move with the target (u = u_d), features stay where they are."""
+        w0 = np.zeros(self._nw)
+        w0[self._ix] = s_rel
+        n = np.arange(self.N)[:, None] * self.cfg.dt
+        u_d = np.hstack([vq + aq * n, np.zeros((self.N, 1))])
+        w0[self._iu] = np.clip(u_d, -self.limits.scale, self.limits.scale)
+        lo = np.array([self.bounds.x1[0], self.bounds.x2[0], self.bounds.x3[0]])
+        hi = np.array([self.bounds.x1[1], self.bounds.x2[1], self.bounds.x3[1]])
+        w0[self._isig] = np.maximum(np.maximum(lo - s_rel[:3], s_rel[:3] - hi), 0.0)
+        return w0
+
+    def _fallback(self, s_rel: np.ndarray, vq: np.ndarray) -> tuple[np.ndarray, np.ndarray, str]:
+        """Defined action on solver failure: shifted previous plan, else hover with the target."""
+        umax = self.limits.scale
+        if self._w is not None and self._fallback_count < self.options.max_fallback_steps:
+            self._w = self._w[self._shift_w]
+            self._lam_g = self._lam_g[self._shift_g]
+            self._fallback_count += 1
+            u = np.clip(self._w[self._iu[0]], -umax, umax)
+            return u, self._w[self._ix], "fallback-shifted"
+        self.reset()
+        u = np.clip(np.append(vq, 0.0), -umax, umax)
+        return u, np.tile(s_rel, (self.N + 1, 1)), "fallback-hover"

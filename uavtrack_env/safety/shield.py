@@ -1,0 +1,415 @@
+"""The distributed CBF-QP (47): certify(nominal action, context) -> (safe action, report).
+
+Problem (47) is posed over the paper's 6-vector ``u^g = [V^g, omega^g]`` with
+``omega_x = omega_y = 0`` (the UAV only yaws) and ``omega_z^g = -omega_cy``. Its cost
+``||u^g - u_hat||^2`` (u_hat = the nominal action rotated to the global frame) splits into a
+velocity part and a yaw-rate part, and no CBF row touches the yaw rate (zero omega blocks in (25),
+(34), (45)), so:
+
+* the yaw rate is the nominal clipped to ``|omega| <= min(alpha_omega, Table II omega_max)``;
+* the velocity solves ``min ||V - V_hat||^2`` s.t. the CBF rows, Table II and ``||V|| <= alpha_v``.
+
+The velocity QP is solved in camera coordinates ``v_c = R^T V^g`` (R = `cam_to_world(yaw)`): an
+orthogonal change of variables, so the cost and the feasible set are those of (47), but Table II
+(``|v_cx|, |v_cy|, |v_cz| <= v_max``; note v_cy = -V_z) becomes plain variable bounds. Rows are
+normalised to unit normals, so slacks and tolerances are in m/s.
+
+Layers, each tried only if the previous one cannot give an answer:
+
+1. fast path: the nominal action satisfies every row and bound -> returned unchanged ("nominal");
+   if only a bound is violated, its closed-form projection is returned when it is feasible.
+2. hard QP: every row hard ("optimal").
+3. relaxed QP: collision/altitude rows hard, connectivity/occlusion rows with slack under an
+   L1 penalty ("relaxed"). Because it only runs after step 2 was infeasible, the slack is exactly
+   zero whenever a hard solution exists (no dependence on the penalty weight).
+4. fallback: every row slacked, hard rows weighted `hard_penalty` (a best-effort separating
+   velocity, e.g. when the state is already unsafe); if even that fails (solver error), brake:
+   V = 0 with the clipped yaw rate. Both report status "fallback". certify never raises on a
+   valid input and never returns NaN.
+
+Speed bound ``||V|| <= alpha_v`` (a norm, not linear): after each QP, if ``||V|| > alpha_v`` a
+tangent cut ``(V/||V||)^T v <= alpha_v`` (valid for the ball) is added and the QP re-solved, at most
+`norm_cuts` times; a remaining excess is removed by scaling V towards 0. Scaling is sound for every
+hard row: in a safe state each hard row has ``b >= 0`` (b = gamma h with h >= 0, static
+obstacles), so V = 0 satisfies it, and for any V* that satisfies ``a^T V* <= b`` and t in [0, 1],
+``a^T (t V*) = t a^T V* <= t b <= b``; Table II's box also contains the segment [0, V*]. Rows with
+``b < 0`` (connectivity inside its discrete-time margin, recovery from an unsafe state) can lose at
+most ``(1 - t) |b|``; the cuts make ``1 - t`` tiny (< 1e-6 typically) and the connectivity margin
+carries 5 % headroom for it. (`tests/test_safety_shield.py` checks this numerically.)
+
+Rows that cannot be active at any ``||V|| <= alpha_v`` (``b >= alpha_v ||a||``) are pruned from the
+QP; they are implied by the ball, so the solution is unchanged.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from typing import Literal
+
+import numpy as np
+import qpsolvers
+
+from uavtrack_env.config import DT, CBFConfig, ControlLimits
+from uavtrack_env.safety.cbf import (
+    CONNECT,
+    CBFRows,
+    SafetyContext,
+    build_rows,
+)
+
+SOLVERS = ("daqp", "proxqp", "daqp-direct")
+"""QP backends: 'daqp' and 'proxqp' through `qpsolvers.solve_qp`; 'daqp-direct' calls
+`daqp.solve` without qpsolvers' conversions (measured fast path, benchmarks/shield_speed.py)."""
+
+_INF = 1e30
+
+
+@dataclass(frozen=True)
+class ShieldOptions:
+    """Tunables of the shield that are not in the paper's Table IV."""
+
+    obstacle_model: Literal["box", "point"] = "box"
+    """'box': ``dist(p, box)^2 - clearance^2``; 'point': the paper's centre + R_s model (IV-A)."""
+    target_as_obstacle: bool = True
+    """Add a hard row keeping the UAV out of the (moving, oriented) target car box."""
+    occlusion: bool = True
+    """Include the soft occlusion rows (45)."""
+    dt: float = DT
+    """Control period (s) of the forward-Euler plant, for the connectivity margin (80 Hz)."""
+    connectivity_margin: float | None = None
+    """Per-UAV margin on (34) in h-dot units; None: 2.1 dt alpha_v^2 (5 % over the Euler loss)."""
+    soft_penalty: float = 1e3
+    """L1 weight on each soft row's slack (m/s) in the relaxed QP."""
+    hard_penalty: float = 1e6
+    """L1 weight on hard rows' slack in the fallback QP."""
+    slack_regularization: float = 1e-6
+    """Tiny quadratic weight on slacks (keeps the QP Hessian positive definite)."""
+    norm_cuts: int = 4
+    """Maximum tangent cuts for ||V|| <= alpha_v before scaling."""
+    prune: bool = True
+    """Drop rows implied by ||V|| <= alpha_v before the QP."""
+    tol: float = 1e-9
+    """Feasibility tolerance (m/s on unit rows) of the fast path and of active-row detection."""
+    verify_tol: float = 1e-6
+    """A solver's answer is rejected if it violates its QP's rows by more than this."""
+
+    def __post_init__(self) -> None:
+        if self.obstacle_model not in ("box", "point"):
+            raise ValueError(
+                f"obstacle_model must be 'box' or 'point', got {self.obstacle_model!r}"
+            )
+        if not self.dt > 0:
+            raise ValueError(f"dt must be > 0, got {self.dt}")
+        if self.connectivity_margin is not None and self.connectivity_margin < 0:
+            raise ValueError("connectivity_margin must be >= 0")
+        if not (self.soft_penalty > 0 and self.hard_penalty > 0):
+            raise ValueError("penalties must be > 0")
+        if self.slack_regularization < 0 or self.norm_cuts < 0 or self.tol < 0:
+            raise ValueError("slack_regularization, norm_cuts and tol must be >= 0")
+
+
+@dataclass
+class ShieldReport:
+    """What `SafetyFilter.certify` did."""
+
+    status: str
+    """'nominal' (unchanged), 'optimal' (hard QP or bound projection), 'relaxed', 'fallback'."""
+    active: bool
+    """The action was changed."""
+    correction_norm: float
+    """||u_safe - u_nominal|| on the camera-frame command (SI units)."""
+    slack: float
+    """Total violation (m/s, unit rows) of the soft rows at the returned action."""
+    active_rows: list[str]
+    """Rows and bounds active at the solution: 'uav:2', 'obstacle:5', 'speed', 'box', ..."""
+    solver: str = "none"
+    """Backend that produced the answer ('none', 'closed-form', a `SOLVERS` name, 'brake')."""
+    solver_calls: int = 0
+    """QP solves in this call (cuts and phases included)."""
+    time_us: float = 0.0
+    """Wall time of certify() in microseconds."""
+    hard_violation: float = 0.0
+    """Total violation (m/s) of hard rows at the returned action (nonzero only in fallback)."""
+    min_hard_h: float = math.inf
+    """Smallest barrier value of the hard rows (< 0: the state is already unsafe)."""
+    slack_per_row: dict[str, float] = field(default_factory=dict)
+    """Violation of each violated soft row (m/s)."""
+    rows: CBFRows | None = field(default=None, repr=False)
+    """The rows of this call (global frame), for logging."""
+    neighbour_ids: tuple[int, ...] | None = field(default=None, repr=False)
+
+    @property
+    def h(self) -> dict[str, float]:
+        """Barrier values of all rows by name (for logging and figures)."""
+        if self.rows is None:
+            return {}
+        names = self.rows.names(self.neighbour_ids)
+        return dict(zip(names, self.rows.h.tolist()))
+
+
+def check_eq28(cbf: CBFConfig) -> None:
+    """Raise ValueError unless gamma_s >= 4 alpha_v R_s / (D_s^2 - R_s^2), eq. (28)."""
+    bound = 4.0 * cbf.alpha_v * cbf.r_s / (cbf.d_s**2 - cbf.r_s**2)
+    if cbf.gamma_s < bound:
+        raise ValueError(f"gamma_s = {cbf.gamma_s} violates eq. (28): need >= {bound:.4f}")
+
+
+class SafetyFilter:
+    """Distributed CBF-QP safety filter of eq. (47), one instance per UAV (or shared).
+
+    Used as the last stage of the expert (NMPC action -> safe action) and as a shield around a
+    learned policy. Stateless between calls.
+    """
+
+    def __init__(
+        self,
+        cbf: CBFConfig = CBFConfig(),  # noqa: B008 (frozen, immutable default)
+        limits: ControlLimits = ControlLimits(),  # noqa: B008
+        solver: str = "daqp",
+        **options,
+    ) -> None:
+        if not isinstance(cbf, CBFConfig):
+            raise ValueError(f"cbf must be a CBFConfig, got {type(cbf).__name__}")
+        if not isinstance(limits, ControlLimits):
+            raise ValueError(f"limits must be a ControlLimits, got {type(limits).__name__}")
+        if solver not in SOLVERS:
+            raise ValueError(f"solver must be one of {SOLVERS}, got {solver!r}")
+        check_eq28(cbf)
+        self.cbf, self.limits, self.solver = cbf, limits, solver
+        self.options = ShieldOptions(**options)
+        dt = self.options.dt
+        for name, rate in (
+            ("gamma_s / 2", 0.5 * cbf.gamma_s),
+            ("gamma_c / 2", 0.5 * cbf.gamma_c),
+            ("gamma_obstacle", cbf.gamma_obstacle),
+            ("gamma_z", cbf.gamma_z),
+        ):
+            if rate * dt > 1.0:
+                raise ValueError(
+                    f"{name} * dt = {rate * dt:.3f} > 1: the discrete-time CBF condition "
+                    "h(k+1) >= (1 - gamma dt) h(k) no longer keeps h >= 0"
+                )
+        self.alpha_v = float(cbf.alpha_v)
+        self.v_max = float(limits.v_max)
+        self.w_max = float(min(cbf.alpha_omega, limits.omega_max))
+        m = self.options.connectivity_margin
+        self.connectivity_margin = 2.1 * dt * self.alpha_v**2 if m is None else float(m)
+        # Closed-form projection onto {box} n {ball} exists when one contains the other.
+        if self.alpha_v <= self.v_max:
+            self._bounds_kind = "ball"
+        elif self.alpha_v >= math.sqrt(3.0) * self.v_max:
+            self._bounds_kind = "box"
+        else:
+            self._bounds_kind = None
+        self._lb3 = np.full(3, -self.v_max)
+        self._ub3 = np.full(3, self.v_max)
+
+    # ----------------------------------------------------------------- public
+    def certify(self, u_nominal: np.ndarray, ctx: SafetyContext) -> tuple[np.ndarray, ShieldReport]:
+        """Return the safe camera-frame action u = [v_cx, v_cy, v_cz, omega_cy] and a report.
+
+        ``u_nominal`` is the camera-frame command in SI units (it may exceed Table II; it is then
+        projected). Raises ValueError only for malformed input.
+        """
+        t0 = time.perf_counter()
+        u = np.asarray(u_nominal, dtype=float)
+        if u.shape != (4,):
+            raise ValueError(
+                f"u_nominal must have shape (4,) [v_cx, v_cy, v_cz, w_cy], got {u.shape}"
+            )
+        if not np.isfinite(u).all():
+            raise ValueError(f"u_nominal must be finite, got {u}")
+        if not isinstance(ctx, SafetyContext):
+            raise ValueError(f"ctx must be a SafetyContext, got {type(ctx).__name__}")
+        opt = self.options
+        rows = build_rows(
+            ctx,
+            self.cbf,
+            obstacle_model=opt.obstacle_model,
+            connectivity_margin=self.connectivity_margin,
+            target_as_obstacle=opt.target_as_obstacle,
+            occlusion=opt.occlusion,
+        )
+        c, s = math.cos(ctx.yaw), math.sin(ctx.yaw)
+        R = np.array([[s, 0.0, c], [-c, 0.0, s], [0.0, -1.0, 0.0]])  # cam_to_world(yaw)
+        Ac = rows.A @ R
+        norms = np.sqrt(np.einsum("ij,ij->i", Ac, Ac))
+        zero = norms < 1e-12
+        scale = np.where(zero, 1.0, norms)
+        An = Ac / scale[:, None]
+        bn = rows.b / scale
+        keep = ~zero | (bn < 0.0)
+        if opt.prune:
+            keep &= bn < self.alpha_v * (1.0 + 1e-9)
+        kept = np.flatnonzero(keep)
+        An, bn = An[kept], bn[kept]
+        soft = rows.kind[kept] >= CONNECT
+
+        v_hat = u[:3]
+        w = min(max(u[3], -self.w_max), self.w_max)
+        tol = opt.tol
+        in_bounds = (
+            abs(v_hat[0]) <= self.v_max
+            and abs(v_hat[1]) <= self.v_max
+            and abs(v_hat[2]) <= self.v_max
+            and v_hat @ v_hat <= self.alpha_v**2
+        )
+        rows_ok = not len(bn) or bool((An @ v_hat <= bn + tol).all())
+        if in_bounds and rows_ok and w == u[3]:
+            return u, self._report("nominal", u, u, rows, ctx, t0, "none", 0, An, bn, soft, kept)
+
+        status, solver, calls = "optimal", "closed-form", 0
+        v = v_hat if in_bounds else self._project_bounds(v_hat)
+        if v is None or (len(bn) and not (An @ v <= bn + tol).all()):
+            v, status, solver, calls = self._solve_layers(v_hat, An, bn, soft)
+        u_safe = np.array([v[0], v[1], v[2], w])
+        if not np.isfinite(u_safe).all():  # defensive: never hand out NaN
+            u_safe = np.array([0.0, 0.0, 0.0, w])
+            status, solver = "fallback", "brake"
+        return u_safe, self._report(
+            status, u, u_safe, rows, ctx, t0, solver, calls, An, bn, soft, kept
+        )
+
+    # ----------------------------------------------------------------- layers
+    def _project_bounds(self, v: np.ndarray) -> np.ndarray | None:
+        """Closed-form Euclidean projection onto Table II's box intersected with the speed ball."""
+        if self._bounds_kind == "ball":
+            n = math.sqrt(v @ v)
+            return v * (self.alpha_v / n) if n > self.alpha_v else v
+        if self._bounds_kind == "box":
+            return np.clip(v, -self.v_max, self.v_max)
+        return None
+
+    def _solve_layers(self, v_hat, An, bn, soft):
+        """Hard QP, then relaxed QP, then fallback QP, then brake (see the module docstring)."""
+        opt = self.options
+        calls = 0
+        weights = np.zeros(len(bn))
+        v, n = self._solve(v_hat, An, bn, weights)
+        calls += n
+        if v is not None:
+            return v, "optimal", self.solver, calls
+        if soft.any():
+            weights = np.where(soft, opt.soft_penalty, 0.0)
+            v, n = self._solve(v_hat, An, bn, weights)
+            calls += n
+            if v is not None:
+                return v, "relaxed", self.solver, calls
+        weights = np.where(soft, opt.soft_penalty, opt.hard_penalty)
+        v, n = self._solve(v_hat, An, bn, weights)
+        calls += n
+        if v is not None:
+            return v, "fallback", self.solver, calls
+        return np.zeros(3), "fallback", "brake", calls
+
+    def _solve(self, v_hat, An, bn, weights) -> tuple[np.ndarray | None, int]:
+        """min 1/2||v - v_hat||^2 + sum w_j s_j  s.t.  An v - s <= bn, box, s >= 0, with cuts."""
+        slack = np.flatnonzero(weights > 0.0)
+        ns = len(slack)
+        nv = 3 + ns
+        H = np.eye(nv)
+        H[3:, 3:] *= self.options.slack_regularization
+        f = np.concatenate([-v_hat, weights[slack]])
+        G = np.zeros((len(bn), nv))
+        G[:, :3] = An
+        G[slack, 3 + np.arange(ns)] = -1.0
+        lb = np.concatenate([self._lb3, np.zeros(ns)])
+        ub = np.concatenate([self._ub3, np.full(ns, _INF)])
+        h = bn
+        calls = 0
+        for it in range(self.options.norm_cuts + 1):
+            x = self._backend(H, f, G, h, lb, ub)
+            calls += 1
+            if x is None:
+                return None, calls
+            v = x[:3]
+            speed = math.sqrt(v @ v)
+            if speed <= self.alpha_v * (1.0 + 1e-9):
+                return v, calls
+            if it == self.options.norm_cuts:
+                return v * (self.alpha_v / speed), calls
+            cut = np.zeros((1, nv))
+            cut[0, :3] = v / speed
+            G = np.vstack([G, cut])
+            h = np.append(h, self.alpha_v)
+        return None, calls  # pragma: no cover (loop always returns)
+
+    def _backend(self, H, f, G, h, lb, ub) -> np.ndarray | None:
+        """One QP solve; None on infeasibility, solver error or an inaccurate answer."""
+        try:
+            if self.solver == "daqp-direct":
+                import daqp
+
+                nv = len(f)
+                bu = np.concatenate([ub, h])
+                bl = np.concatenate([lb, np.full(len(h), -_INF)])
+                x, _, flag, _ = daqp.solve(H, f, G, bu, bl, np.zeros(nv + len(h), dtype=np.int32))
+                if flag < 1:
+                    return None
+            else:
+                kwargs = {"eps_abs": 1e-9, "eps_rel": 0.0} if self.solver == "proxqp" else {}
+                ub_q = np.where(ub >= _INF, np.inf, ub)
+                x = qpsolvers.solve_qp(
+                    H,
+                    f,
+                    G if len(h) else None,
+                    h if len(h) else None,
+                    lb=lb,
+                    ub=ub_q,
+                    solver=self.solver,
+                    **kwargs,
+                )
+                if x is None:
+                    return None
+        except Exception:  # a solver crash must not take the UAV down: the caller falls back
+            return None
+        x = np.asarray(x, dtype=float)
+        vt = self.options.verify_tol
+        if not np.isfinite(x).all():
+            return None
+        if len(h) and (G @ x - h > vt * (1.0 + np.abs(h))).any():
+            return None
+        if (x < lb - vt).any() or (x > ub + vt).any():
+            return None
+        return x
+
+    # ----------------------------------------------------------------- report
+    def _report(self, status, u, u_safe, rows, ctx, t0, solver, calls, An, bn, soft, kept):
+        changed = status != "nominal"
+        active_rows: list[str] = []
+        slack_total, hard_violation, slack_rows = 0.0, 0.0, {}
+        if changed:
+            v = u_safe[:3]
+            viol = An @ v - bn
+            active_tol = max(self.options.tol, 1e-7)
+            for j in np.flatnonzero(np.abs(viol) <= active_tol):
+                active_rows.append(rows.name(kept[j], ctx.neighbour_ids))
+            over = viol > active_tol
+            for j in np.flatnonzero(over & soft):
+                slack_rows[rows.name(kept[j], ctx.neighbour_ids)] = float(viol[j])
+            slack_total = float(viol[over & soft].sum())
+            hard_violation = float(viol[over & ~soft].sum())
+            if v @ v >= self.alpha_v**2 * (1.0 - 1e-9):
+                active_rows.append("speed")
+            if np.abs(v).max() >= self.v_max * (1.0 - 1e-9):
+                active_rows.append("box")
+            if u_safe[3] != u[3]:
+                active_rows.append("yaw_rate")
+        hard_h = rows.h[rows.hard]
+        return ShieldReport(
+            status=status,
+            active=changed,
+            correction_norm=float(np.linalg.norm(u_safe - u)) if changed else 0.0,
+            slack=slack_total,
+            active_rows=active_rows,
+            solver=solver,
+            solver_calls=calls,
+            time_us=(time.perf_counter() - t0) * 1e6,
+            hard_violation=hard_violation,
+            min_hard_h=float(hard_h.min()) if len(hard_h) else math.inf,
+            slack_per_row=slack_rows,
+            rows=rows,
+            neighbour_ids=ctx.neighbour_ids,
+        )
