@@ -13,7 +13,7 @@ from . import render as rendering
 from .config import DT, EnvConfig
 from .dynamics import integrate
 from .geometry import occlusion_angle, point_box_distance, world_to_cam_vec
-from .rewards import connected_components_ok, effort_term, tracking_term
+from .rewards import connected, effort_term, tracking_term
 from .scenarios import Layout, make_layout
 from .sensors import Detections, Detector, receive_positions
 from .target import CAR_HALF_EXTENTS, TargetMotion
@@ -275,10 +275,11 @@ class UAVTrackEnv(ParallelEnv):
             self.world, self.position, self.yaw, tgt_c, heading, heading, rng
         )
         self.last_detection = det
-        received = receive_positions(self.position, self.alive, cfg.comms, rng)
+        pair = np.linalg.norm(self.position[:, None] - self.position[None], axis=-1)
+        received = receive_positions(pair, self.alive, cfg.comms, rng)
         hits = self.world.contacts(n)
 
-        dist = np.linalg.norm(self.position[:, None] - self.position[None], axis=-1)
+        dist = pair.copy()
         dist[~self.alive, :] = np.inf
         dist[:, ~self.alive] = np.inf
         np.fill_diagonal(dist, np.inf)
@@ -293,7 +294,7 @@ class UAVTrackEnv(ParallelEnv):
         collided = (
             hits["ground"] | hits["obstacle"] | hits["target"] | (nearest_uav < cfg.cbf.r_s)
         ) & self.alive
-        disconnected = not connected_components_ok(self.position, self.alive, cfg.cbf.r_c)
+        disconnected = not connected(pair, self.alive, cfg.cbf.r_c)
         occluded = det.blocked_fraction > 1.0 - cfg.detector.min_visible_fraction
 
         tracking = tracking_term(
@@ -302,7 +303,7 @@ class UAVTrackEnv(ParallelEnv):
         effort = effort_term(u, cfg.reward)
         reward = -(tracking + effort)
         self._clip_count += clipped
-        obs_all = self._observations(det, received, clearance)
+        obs_all = self._observations(det, received, clearance, pair)
         theta, in_noi = self._occlusion_angles(tgt_c)
         target_clear = self._target_clearance(tgt_c, heading)
 
@@ -400,7 +401,7 @@ class UAVTrackEnv(ParallelEnv):
         return d - self.config.uav_radius
 
     def _observations(
-        self, det: Detections, received: np.ndarray, clearance: np.ndarray
+        self, det: Detections, received: np.ndarray, clearance: np.ndarray, pair: np.ndarray
     ) -> np.ndarray:
         """All agents' observation vectors (n, n_obs), float32."""
         cfg = self.config
@@ -437,8 +438,7 @@ class UAVTrackEnv(ParallelEnv):
         blocks = [own]
         k = cfg.n_neighbours
         if k:
-            d = np.linalg.norm(self.position[:, None] - self.position[None], axis=-1)
-            d = np.where(received, d, np.inf)
+            d = np.where(received, pair, np.inf)
             order = np.argsort(d, axis=1, kind="stable")[:, :k]
             rel = self.position[order] - self.position[:, None]
             mask = np.isfinite(np.take_along_axis(d, order, 1))

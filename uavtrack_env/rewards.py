@@ -40,13 +40,15 @@ def effort_term(u: np.ndarray, cfg: RewardConfig) -> np.ndarray:
     return (u**2) @ np.asarray(cfg.r)
 
 
-def connected_components_ok(positions: np.ndarray, alive: np.ndarray, r_c: float) -> bool:
-    """Whether the alive UAVs form one connected graph with edges of length <= R_c."""
+def connected(dist: np.ndarray, alive: np.ndarray, r_c: float) -> bool:
+    """Whether the alive UAVs form one connected graph with edges of length <= R_c.
+
+    ``dist`` is the (n, n) matrix of inter-UAV distances.
+    """
     idx = np.flatnonzero(alive)
     if len(idx) <= 1:
         return True
-    pts = positions[idx]
-    adj = np.linalg.norm(pts[:, None] - pts[None], axis=-1) <= r_c
+    adj = dist[np.ix_(idx, idx)] <= r_c
     reach = adj[0].copy()
     for _ in range(len(idx)):
         grown = adj[reach].any(axis=0)

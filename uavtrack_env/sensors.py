@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .config import CameraConfig, CommsConfig, DetectorConfig
-from .geometry import image_features, relative_angle, world_to_cam_vec, wrap_angle
+from .geometry import relative_angle, wrap_angle
 from .target import CAR_HALF_EXTENTS
 from .world import World
 
@@ -65,8 +65,10 @@ class Detector:
     def __init__(self, camera: CameraConfig, cfg: DetectorConfig) -> None:
         self.camera = camera
         self.cfg = cfg
-        self._samples = _unit_grid(cfg.samples_per_axis) * CAR_HALF_EXTENTS
-        self._corners = _CORNER_SIGNS * CAR_HALF_EXTENTS
+        samples = _unit_grid(cfg.samples_per_axis) * CAR_HALF_EXTENTS
+        self._n_samples = len(samples)
+        # One transform for all points: the centre, the ray-cast samples, the 8 box corners.
+        self._local = np.vstack([np.zeros((1, 3)), samples, _CORNER_SIGNS * CAR_HALF_EXTENTS])
 
     def detect(
         self,
@@ -78,34 +80,42 @@ class Detector:
         target_heading: float,
         rng: np.random.Generator,
     ) -> Detections:
-        cam, cfg = self.camera, self.cfg
+        cam, cfg, s = self.camera, self.cfg, self._n_samples
         n = len(positions)
-        rel_center = world_to_cam_vec(target_center - positions, yaws)
-        feats = image_features(rel_center)
-        psi = relative_angle(positions, target_center, target_heading)
-        true = np.column_stack([feats, psi])
-        in_front = rel_center[:, 2] > cam.near
+        points = _to_world(self._local, target_center, target_yaw)  # (P, 3)
+        d = points[None] - positions[:, None]  # (n, P, 3)
+        c, sn = np.cos(yaws)[:, None], np.sin(yaws)[:, None]
+        X = sn * d[..., 0] - c * d[..., 1]  # camera frame, see geometry.world_to_cam_vec
+        Y = -d[..., 2]
+        Z = c * d[..., 0] + sn * d[..., 1]
+        front = Z > cam.near
+        Zs = np.where(front, Z, np.inf)
+        pu = cam.fx * X / Zs + cam.cu
+        pv = cam.fy * Y / Zs + cam.cv
 
-        points = _to_world(self._samples, target_center, target_yaw)  # (S, 3)
-        s = len(points)
-        rel = world_to_cam_vec(points[None] - positions[:, None], yaws[:, None])  # (n, S, 3)
-        z = rel[..., 2]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            pu = cam.fx * rel[..., 0] / z + cam.cu
-            pv = cam.fy * rel[..., 1] / z + cam.cv
-        in_image = (z > cam.near) & (pu >= 0) & (pu < cam.width) & (pv >= 0) & (pv < cam.height)
+        z0 = np.where(np.abs(Z[:, 0]) < 1e-9, 1e-9, Z[:, 0])
+        psi = relative_angle(positions, target_center, target_heading)
+        true = np.column_stack([X[:, 0] / z0, Y[:, 0] / z0, 1.0 / z0, psi])
+        in_front = front[:, 0]
+
+        sp = slice(1, 1 + s)
+        in_image = (
+            front[:, sp]
+            & (pu[:, sp] >= 0)
+            & (pu[:, sp] < cam.width)
+            & (pv[:, sp] >= 0)
+            & (pv[:, sp] < cam.height)
+        )
         reach = world.rays_reach_target(
-            np.repeat(positions, s, axis=0), np.tile(points, (n, 1))
+            np.repeat(positions, s, axis=0), np.tile(points[sp], (n, 1))
         ).reshape(n, s)
         visible = (in_image & reach).mean(axis=1)
-        blocked = (~reach).mean(axis=1)
+        blocked = 1.0 - reach.mean(axis=1)
 
-        corners = _to_world(self._corners, target_center, target_yaw)
-        rc = world_to_cam_vec(corners[None] - positions[:, None], yaws[:, None])  # (n, 8, 3)
-        all_front = np.all(rc[..., 2] > cam.near, axis=1)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            cu = np.clip(cam.fx * rc[..., 0] / rc[..., 2] + cam.cu, 0.0, cam.width)
-            cv = np.clip(cam.fy * rc[..., 1] / rc[..., 2] + cam.cv, 0.0, cam.height)
+        cs = slice(1 + s, None)
+        all_front = front[:, cs].all(axis=1)
+        cu = np.clip(pu[:, cs], 0.0, cam.width)
+        cv = np.clip(pv[:, cs], 0.0, cam.height)
         box_u = 0.5 * (cu.min(axis=1) + cu.max(axis=1))
         box_v = 0.5 * (cv.min(axis=1) + cv.max(axis=1))
 
@@ -119,9 +129,7 @@ class Detector:
             u=np.where(detected, box_u + cfg.pixel_noise_std * noise[:, 0], nan),
             v=np.where(detected, box_v + cfg.pixel_noise_std * noise[:, 1], nan),
             depth=np.where(
-                detected,
-                np.maximum(rel_center[:, 2] + cfg.depth_noise_std * noise[:, 2], cam.near),
-                nan,
+                detected, np.maximum(Z[:, 0] + cfg.depth_noise_std * noise[:, 2], cam.near), nan
             ),
             psi=np.where(detected, wrap_angle(psi + cfg.psi_noise_std * noise[:, 3]), nan),
             visible_fraction=visible,
@@ -132,11 +140,13 @@ class Detector:
 
 
 def receive_positions(
-    positions: np.ndarray, alive: np.ndarray, cfg: CommsConfig, rng: np.random.Generator
+    dist: np.ndarray, alive: np.ndarray, cfg: CommsConfig, rng: np.random.Generator
 ) -> np.ndarray:
-    """received[i, j]: UAV i got UAV j's position this step (within R_c, not dropped), (n, n)."""
-    n = len(positions)
-    dist = np.linalg.norm(positions[:, None] - positions[None], axis=-1)
+    """received[i, j]: UAV i got UAV j's position (within R_c, not dropped), (n, n).
+
+    ``dist`` is the (n, n) matrix of inter-UAV distances.
+    """
+    n = len(dist)
     lost = rng.random((n, n)) < cfg.drop_prob
     received = (dist <= cfg.r_c) & ~lost & alive[:, None] & alive[None, :]
     np.fill_diagonal(received, False)

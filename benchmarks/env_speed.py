@@ -1,0 +1,66 @@
+"""Env steps per second with random actions, random world, detector on, rendering off.
+
+    python benchmarks/env_speed.py [--steps 2000] [--repeats 5] [--n 3 10 30]
+
+Prints, per team size, the median over repeats of steps/s, agent-steps/s and us per agent-step,
+the real-time factor at 80 Hz and the per-agent cost relative to n = 3.
+"""
+
+from __future__ import annotations
+
+import argparse
+import platform
+import statistics
+import time
+
+import numpy as np
+
+from uavtrack_env import uavtrack_v0
+
+
+def steps_per_second(n: int, steps: int, seed: int) -> float:
+    env = uavtrack_v0.parallel_env(
+        scenario="random", n_uavs=n, max_cycles=10**9, terminate_on_collision="agent"
+    )
+    rng = np.random.default_rng(seed)
+    env.reset(seed=seed)
+    elapsed, done = 0.0, 0
+    while done < steps:
+        if not env.agents:
+            env.reset()
+        actions = {a: rng.uniform(-0.3, 0.3, 4).astype(np.float32) for a in env.agents}
+        t0 = time.perf_counter()
+        env.step(actions)
+        elapsed += time.perf_counter() - t0
+        done += 1
+    env.close()
+    return steps / elapsed
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__)
+    ap.add_argument("--steps", type=int, default=2000)
+    ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument("--n", type=int, nargs="+", default=[3, 10, 30])
+    args = ap.parse_args()
+    print(
+        f"machine: {platform.processor() or platform.machine()}, python {platform.python_version()}"
+    )
+    print(
+        f"{'n':>4} {'steps/s':>9} {'agent-steps/s':>14} {'us/agent-step':>14} {'x real time':>12} "
+        f"{'per-agent vs n=3':>17}"
+    )
+    base = None
+    for n in args.n:
+        rates = [steps_per_second(n, args.steps, seed) for seed in range(args.repeats)]
+        sps = statistics.median(rates)
+        per_agent = 1e6 / (sps * n)
+        base = base or per_agent
+        print(
+            f"{n:>4} {sps:>9.0f} {sps * n:>14.0f} {per_agent:>14.1f} {sps / 80:>12.1f} "
+            f"{per_agent / base:>17.2f}"
+        )
+
+
+if __name__ == "__main__":
+    main()
