@@ -1,8 +1,13 @@
-"""Run one episode and report the metrics of Tables V-VI.
+"""Evaluate the expert (UKF -> NMPC -> CBF-QP) or a baseline policy; reproduce Tables V-VI.
 
-    python -m baselines.evaluate --scenario A --init 0 --out runs/A0
+    python -m baselines.evaluate --scenario A --init 0 --out runs/A0       # one Table VI row
+    python -m baselines.evaluate --all --out runs/table6                    # all six rows
+    python -m baselines.evaluate --scenario random --seed 3 --out runs/r3   # a random world
+    python -m baselines.evaluate --scenario A --no-cbf --out runs/A0-nocbf  # ablation
 
-Writes DIR/metrics.json, DIR/table.md and DIR/frame.png (the last rendered frame).
+Writes DIR/metrics.json, DIR/table.md, DIR/frame.png and the figures of Figs. 12-20.
+Defaults: 60 s at 80 Hz, velocity-lag dynamics, detector noise on (the paper's figures come
+from a simulated quadrotor and a real detector).
 """
 
 from __future__ import annotations
@@ -21,95 +26,175 @@ from uavtrack_env.config import DT
 from uavtrack_env.metrics import EpisodeRecorder
 from uavtrack_env.policies import HoverPolicy, RandomPolicy, VisualServoPolicy
 
-POLICIES = {"servo": VisualServoPolicy, "hover": HoverPolicy, "random": RandomPolicy}
+from .paper_results import TABLE_VI
+
+POLICIES = ("expert", "servo", "hover", "random")
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
+    ap = argparse.ArgumentParser(
+        prog="python -m baselines.evaluate",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     ap.add_argument("--scenario", default="A", choices=["A", "B", "C", "random"])
-    ap.add_argument("--init", type=int, default=0, choices=[0, 1], help="Table VI row")
-    ap.add_argument("--seed", type=int, default=0, help="env seed (noise, random world)")
-    ap.add_argument("--duration", type=float, default=60.0, help="episode length (s)")
-    ap.add_argument("--policy", default="servo", choices=sorted(POLICIES))
-    ap.add_argument("--dynamics", default="integrator", choices=["integrator", "lag"])
+    ap.add_argument("--init", type=int, default=0, choices=[0, 1], help="Table VI row (0 or 1)")
+    ap.add_argument("--all", action="store_true", help="run the six rows of Table VI")
+    ap.add_argument("--seed", type=int, default=0, help="env seed (noise; the random world)")
+    ap.add_argument("--duration", type=float, default=60.0, help="episode length in s")
+    ap.add_argument("--policy", default="expert", choices=POLICIES)
+    ap.add_argument("--dynamics", default="lag", choices=["integrator", "lag"])
+    ap.add_argument("--no-noise", action="store_true", help="noiseless detector")
+    ap.add_argument("--no-cbf", action="store_true", help="expert without the CBF-QP")
+    ap.add_argument("--gamma-o", type=float, default=None, help="occlusion CBF rate (Fig. 20: 0.5)")
+    ap.add_argument(
+        "--occlusion-model",
+        default=None,
+        choices=["paper", "moving-target"],
+        help="eq. (43) or not",
+    )
+    ap.add_argument("--nmpc-solver", default=None, choices=["sqp", "ipopt", "rti"])
     ap.add_argument("--out", type=Path, default=Path("runs/latest"))
+    ap.add_argument("--no-figures", action="store_true")
     ap.add_argument("--no-progress", action="store_true", help="hide the progress bar")
     return ap.parse_args(argv)
 
 
-def run_episode(args: argparse.Namespace) -> dict:
+def _env_kwargs(args: argparse.Namespace, scenario: str, init: int, steps: int) -> dict:
+    cbf = {}
+    if args.gamma_o is not None:
+        cbf["gamma_o"] = args.gamma_o
+    if args.occlusion_model is not None:
+        cbf["occlusion_model"] = args.occlusion_model
+    kw = {
+        "scenario": scenario,
+        "init": init,
+        "max_cycles": steps,
+        "render_mode": "rgb_array",
+        "dynamics": {"model": args.dynamics},
+        "cbf": cbf,
+    }
+    if args.no_noise:
+        from uavtrack_env.config import DetectorConfig
+
+        kw["detector"] = DetectorConfig.noiseless()
+    return kw
+
+
+def _make_policy(args: argparse.Namespace, env):
+    if args.policy == "expert":
+        from uavtrack_env.config import NMPCConfig
+        from uavtrack_env.expert import ExpertPolicy
+
+        nmpc = NMPCConfig(solver=args.nmpc_solver) if args.nmpc_solver else None
+        return ExpertPolicy.from_env(env, use_cbf=not args.no_cbf, nmpc=nmpc)
+    base = {"servo": VisualServoPolicy, "hover": HoverPolicy, "random": RandomPolicy}[args.policy]()
+    return lambda obs, infos: {a: base(a, obs[a]) for a in obs}
+
+
+def run_episode(args: argparse.Namespace, scenario: str, init: int, out: Path) -> dict:
+    """One episode; writes metrics.json, table.md, frame.png and figures into ``out``."""
     steps = max(1, round(args.duration / DT))
-    env = uavtrack_v0.parallel_env(
-        scenario=args.scenario,
-        init=args.init,
-        max_cycles=steps,
-        render_mode="rgb_array",
-        dynamics={"model": args.dynamics},
-    )
-    policy = POLICIES[args.policy]()
+    env = uavtrack_v0.parallel_env(**_env_kwargs(args, scenario, init, steps))
     obs, infos = env.reset(seed=args.seed)
-    rec = EpisodeRecorder(env.possible_agents, DT, env.config.cbf.theta_star)
+    policy = _make_policy(args, env)
+    rec = EpisodeRecorder(
+        env.possible_agents, DT, env.config.cbf.theta_star, env.layout.obstacle_centers
+    )
     rec.record(infos)
     env_time = []
-    for _ in tqdm(range(steps), desc=f"{args.scenario}{args.init}", disable=args.no_progress):
+    slacks = getattr(policy, "slacks", None)
+    for _ in tqdm(range(steps), desc=f"{scenario}{init}", disable=args.no_progress, leave=False):
         if not env.agents:
             break
-        actions = {a: policy(a, obs[a]) for a in env.agents}
+        actions = policy(obs, infos)
         t0 = time.perf_counter()
         obs, _, _, _, infos = env.step(actions)
         env_time.append(time.perf_counter() - t0)
-        rec.record(infos)
-    args.out.mkdir(parents=True, exist_ok=True)
-    frame = env.render()
-    import matplotlib.pyplot as plt
-
-    plt.imsave(args.out / "frame.png", frame)
+        rec.record(infos, slacks() if slacks else None)
     n = env.config.n_uavs
+    timing = {"env": 1e3 * float(np.median(env_time)) / n if env_time else math.nan}
+    for stage in ("ukf", "nmpc", "qp"):
+        times = getattr(policy, "timings", {}).get(stage, [])
+        timing[stage] = 1e3 * float(np.median(times)) if times else math.nan
     metrics = {
-        "scenario": args.scenario,
-        "init": args.init,
+        "scenario": scenario,
+        "init": init,
         "seed": args.seed,
-        "duration_s": rec.steps * DT,
+        "duration_s": (rec.steps - 1) * DT,
         "policy": args.policy,
         "dynamics": args.dynamics,
+        "cbf": not args.no_cbf,
         "uavs": rec.summary(),
-        "timing_ms": {"env": 1e3 * float(np.median(env_time)) / n if env_time else math.nan},
+        "timing_ms": timing,
         "initial_conditions": {
             a: [*map(float, env.layout.uav_positions[i][:2]), float(env.layout.uav_yaws[i])]
             for i, a in enumerate(env.possible_agents)
         },
     }
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "metrics.json").write_text(json.dumps(metrics, indent=2))
+    (out / "table.md").write_text(table([metrics]) + "\n")
+    if not args.no_figures:
+        import matplotlib.pyplot as plt
+
+        from uavtrack_env.plotting import all_figures
+
+        plt.imsave(out / "frame.png", env.render())
+        suffix = f"_gamma_o_{args.gamma_o:g}" if args.gamma_o is not None else ""
+        all_figures(
+            rec, env.config, env.layout.references, env.layout.obstacle_half_extents, out, suffix
+        )
     env.close()
     return metrics
 
 
-def table(metrics: dict) -> str:
-    """A markdown table in the form of Table VI."""
+def table(runs: list[dict], paper: bool = False) -> str:
+    """A markdown table in the form of Table VI (with the paper's RMS errors if ``paper``)."""
     yn = {True: "Y", False: "N"}
-    lines = [
+    head = (
         "| Scenario | UAV | Initial (x, y, heading) | Occlusion | Connectivity | Collision "
-        "| RMS U (px) | RMS V (px) | RMS depth (m) | detected |",
-        "|---|---|---|---|---|---|---|---|---|---|",
-    ]
-    for i, (agent, m) in enumerate(metrics["uavs"].items()):
-        x, y, h = metrics["initial_conditions"][agent]
-        lines.append(
-            f"| {metrics['scenario']}{metrics['init']} | {i + 1} | ({x:g}, {y:g}, {h:g}) "
-            f"| {yn[m['occlusion_ok']]} | {yn[m['connectivity_ok']]} | {yn[m['collision_ok']]} "
-            f"| {m['rms_u_px']:.2f} | {m['rms_v_px']:.2f} | {m['rms_depth_m']:.2f} "
-            f"| {m['detected_fraction']:.2f} |"
-        )
+        "| RMS U (px) | RMS V (px) |"
+    )
+    sep = "|---|---|---|---|---|---|---|---|"
+    if paper:
+        head += " paper U | paper V |"
+        sep += "---|---|"
+    lines = [head, sep]
+    for m in runs:
+        for i, (agent, r) in enumerate(m["uavs"].items()):
+            x, y, h = m["initial_conditions"][agent]
+            row = (
+                f"| {m['scenario']}{m['init'] if m['scenario'] != 'random' else ''} | {i + 1} "
+                f"| ({x:g}, {y:g}, {h:g}) | {yn[r['occlusion_ok']]} | {yn[r['connectivity_ok']]} "
+                f"| {yn[r['collision_ok']]} | {r['rms_u_px']:.2f} | {r['rms_v_px']:.2f} |"
+            )
+            if paper:
+                pu, pv = TABLE_VI[(m["scenario"], m["init"])][i]
+                row += f" {pu:.2f} | {pv:.2f} |"
+            lines.append(row)
     return "\n".join(lines)
 
 
 def main(argv: list[str] | None = None) -> None:
     args = parse_args(argv)
-    metrics = run_episode(args)
-    (args.out / "metrics.json").write_text(json.dumps(metrics, indent=2))
-    md = table(metrics)
-    (args.out / "table.md").write_text(md + "\n")
+    if args.all:
+        rows = [(s, i) for s in ("A", "B", "C") for i in (0, 1)]
+        runs = [
+            run_episode(args, s, i, args.out / f"{s}{i}") for s, i in tqdm(rows, desc="Table VI")
+        ]
+        md = table(runs, paper=True)
+        (args.out / "table.md").write_text(md + "\n")
+        (args.out / "metrics.json").write_text(json.dumps(runs, indent=2))
+    else:
+        m = run_episode(args, args.scenario, args.init, args.out)
+        md = table([m], paper=args.scenario != "random")
+        print(
+            "timing (ms, median per UAV-step): "
+            + ", ".join(f"{k} {v:.3f}" for k, v in m["timing_ms"].items())
+        )
     print(md)
-    print(f"\nwrote {args.out}/metrics.json, table.md, frame.png")
+    print(f"\nwrote {args.out}/ (metrics.json, table.md, figures)")
 
 
 if __name__ == "__main__":

@@ -350,6 +350,12 @@ class EnvConfig:
         for name, value in kwargs.items():
             default = getattr(cls(), name) if name in _NESTED else None
             if name in _NESTED and isinstance(value, dict):
+                valid = {f.name for f in dataclasses.fields(default)}
+                bad = sorted(set(value) - valid)
+                if bad:
+                    raise TypeError(
+                        f"unknown field(s) {bad} in {name}; valid fields are {sorted(valid)}"
+                    )
                 value = dataclasses.replace(default, **value)
             elif name in _NESTED and not isinstance(value, type(default)):
                 raise TypeError(

@@ -365,10 +365,12 @@ class UAVTrackEnv(ParallelEnv):
     ) -> dict:
         cam = self.config.camera
         s, ref = det.true_features[i], self.references[i]
-        pixel_error = np.array([cam.fx * (s[0] - ref[0]), cam.fy * (s[1] - ref[1])])
+        ref_px = np.array([cam.fx * ref[0] + cam.cu, cam.fy * ref[1] + cam.cv])
+        center_error = np.array([cam.fx * s[0] + cam.cu, cam.fy * s[1] + cam.cv]) - ref_px
         return {
             "features": s.copy(),
-            "pixel_error": pixel_error,
+            "pixel_error": det.box_center[i] - ref_px,
+            "center_pixel_error": center_error,
             "depth_error": float(1.0 / s[2] - 1.0 / ref[2]) if det.in_front[i] else None,
             "target_position": self.target.center(),
             "target_velocity": self.target.velocity(),

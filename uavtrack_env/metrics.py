@@ -1,8 +1,8 @@
 """Episode recording and the metrics of Tables V-VI (RMS image errors, safety flags).
 
-RMS pixel errors are taken over every step of the episode, on the true image position of the car's
-centre against the reference pixel (c + f x*), so detector noise does not inflate them and steps
-where the target is lost still count (its projection then lies far off).
+RMS pixel errors are taken over every step of the episode, as in Table V between the centre of the
+bounding box and the reference pixel (c + f x*), on the noise-free box (so detector noise does not
+inflate them); steps where the target is lost still count.
 """
 
 from __future__ import annotations
@@ -36,8 +36,18 @@ class AgentTrace:
 class EpisodeRecorder:
     """Collects the env's infos step by step; `summary()` gives the metrics.json per-UAV block."""
 
-    def __init__(self, agents: list[str], dt: float, theta_star: float) -> None:
+    def __init__(
+        self,
+        agents: list[str],
+        dt: float,
+        theta_star: float,
+        obstacle_centers: np.ndarray | None = None,
+    ) -> None:
         self.agents = list(agents)
+        self.obstacle_centers = (
+            np.zeros((0, 3)) if obstacle_centers is None else np.asarray(obstacle_centers, float)
+        )
+        self.target_position: list[np.ndarray] = []
         self.dt = dt
         self.theta_star = theta_star
         self.traces = {a: AgentTrace() for a in agents}
@@ -67,6 +77,8 @@ class EpisodeRecorder:
                 getattr(tr, k).append(info["violations"][k])
             tr.slack.append(0.0 if slacks is None else float(slacks.get(agent, 0.0)))
             positions[agent] = info["own"]["position"]
+        if infos:
+            self.target_position.append(next(iter(infos.values()))["truth"]["target_position"])
         pts = np.array([positions.get(a, [np.nan] * 3) for a in self.agents])
         self.uav_distances.append(np.linalg.norm(pts[:, None] - pts[None], axis=-1))
         self.steps += 1

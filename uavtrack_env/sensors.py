@@ -41,6 +41,9 @@ class Detections:
     """(n, 4) ground-truth s = [x1, x2, x3, psi] of the car's centre."""
     in_front: np.ndarray
     """(n,) bool: the car's centre lies in front of the camera."""
+    box_center: np.ndarray
+    """(n, 2) noise-free bounding-box centre (px), clipped to the image; the projection of the
+    car's centre where a corner lies behind the camera."""
 
 
 def _unit_grid(counts: tuple[int, int, int]) -> np.ndarray:
@@ -136,6 +139,12 @@ class Detector:
             blocked_fraction=blocked,
             true_features=true,
             in_front=in_front,
+            box_center=np.column_stack(
+                [
+                    np.where(all_front, box_u, cam.fx * true[:, 0] + cam.cu),
+                    np.where(all_front, box_v, cam.fy * true[:, 1] + cam.cv),
+                ]
+            ),
         )
 
 

@@ -77,7 +77,8 @@ class TargetMotion:
         self.speed = self.program[0].speed
 
     def _command(self) -> Segment:
-        while self.t >= self.program[self._seg].t_end:
+        # The tolerance keeps float accumulation of t from switching one step late.
+        while self.t >= self.program[self._seg].t_end - 1e-9:
             self._seg += 1
         return self.program[self._seg]
 

@@ -5,10 +5,11 @@ Every row is a linear inequality on the UAV's *global-frame* translational veloc
 
     A V <= b,    b = gamma * h + drift - margin,
 
-and it encodes ``h-dot >= -gamma * h + margin`` because, along the dynamics, ``h-dot = -A V + drift``
-(``drift`` collects what the UAV does not control: the target's estimated motion). Rows never
-involve the yaw rate: the A matrices of (25), (34) and (45) have zeros in the omega block, so the
-angular part of the paper's 6-vector u^g is decoupled from every barrier.
+and it encodes ``h-dot >= -gamma * h + margin`` because along the dynamics
+``h-dot = -A V + drift`` (``drift`` collects what the UAV does not control: the target's
+estimated motion). Rows never involve the yaw rate: the A matrices of (25), (34) and (45) have
+zeros in the omega block, so the angular part of the paper's 6-vector u^g is decoupled from
+every barrier.
 
 Row families (``KIND_NAMES``), all built from what one UAV knows (its `SafetyContext`):
 
@@ -29,6 +30,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numpy as np
 
@@ -135,9 +137,12 @@ class SafetyContext:
             )
 
 
-@dataclass(frozen=True)
-class CBFRows:
-    """A stack of CBF rows ``A V <= b`` on the global velocity V, with their bookkeeping."""
+class CBFRows(NamedTuple):
+    """A stack of CBF rows ``A V <= b`` on the global velocity V, with their bookkeeping.
+
+    Rows are ordered uav, obstacle, target, floor, connect, occlusion; only members of the
+    paper's neighbour sets (N_si, N_ci, N_oi) are present.
+    """
 
     A: np.ndarray
     """(k, 3) row coefficients on V^g (the omega block of (25)/(34)/(45) is zero and dropped)."""
@@ -161,7 +166,9 @@ class CBFRows:
         """(k,) True for collision and altitude rows (never relaxed)."""
         return self.kind < CONNECT
 
-    def __len__(self) -> int:
+    @property
+    def size(self) -> int:
+        """Number of rows."""
         return len(self.b)
 
     def name(self, r: int, neighbour_ids=None) -> str:
@@ -176,7 +183,7 @@ class CBFRows:
 
     def names(self, neighbour_ids=None) -> list[str]:
         """Names of all rows."""
-        return [self.name(r, neighbour_ids) for r in range(len(self))]
+        return [self.name(r, neighbour_ids) for r in range(len(self.b))]
 
 
 # --------------------------------------------------------------------------- barrier functions
@@ -200,16 +207,16 @@ def _box_distance_grad(local: np.ndarray, half: np.ndarray) -> tuple[np.ndarray,
     """
     excess = np.abs(local) - half
     outside = np.maximum(excess, 0.0)
-    sign = np.where(local >= 0.0, 1.0, -1.0)
-    grad = 2.0 * sign * outside
+    grad = np.copysign(2.0 * outside, local)
     d2 = np.einsum("ij,ij->i", outside, outside)
-    inside = (excess < 0.0).all(axis=1)
-    if inside.any():
+    inside = np.flatnonzero(excess.max(axis=1) < 0.0)
+    if len(inside):
         ex = excess[inside]
+        rows = np.arange(len(inside))
         axis = np.argmax(ex, axis=1)  # the face closest to the point (least negative excess)
-        depth = -ex[np.arange(len(ex)), axis]
+        depth = -ex[rows, axis]
         g = np.zeros_like(ex)
-        g[np.arange(len(ex)), axis] = 2.0 * depth * sign[inside][np.arange(len(ex)), axis]
+        g[rows, axis] = np.copysign(2.0 * depth, local[inside, axis])
         grad[inside] = g
         d2[inside] = -(depth**2)
     return d2, grad
@@ -237,25 +244,26 @@ def h_occlusion(p: np.ndarray, p_o: np.ndarray, n: np.ndarray, theta_star: float
 
 
 # --------------------------------------------------------------------------- row builders
-_Rows = tuple  # (A, h, gamma, drift, margin, index) raw arrays of one family
+# Each family returns (A, h, drift, index): rows ``A V <= gamma h + drift - margin`` with the
+# family's gamma and margin fixed by `RowBuilder` (see each docstring). drift None means 0.
 
 
-def collision_rows(p: np.ndarray, neighbours: np.ndarray, cbf: CBFConfig) -> _Rows:
+def collision_rows(p: np.ndarray, neighbours: np.ndarray, cbf: CBFConfig):
     """Rows (25) for j in N_si = {||p - p_j|| <= D_s}: ``-2 (p - p_j)^T V <= gamma_s h / 2``.
 
-    The halved rate is the distributed split (23)-(24): UAV j enforces the mirrored half.
+    The halved rate is the distributed split (23)-(24): UAV j enforces the mirrored half. h is
+    convex, so forward Euler keeps ``h(k+1) >= (1 - gamma_s dt) h(k)`` without a margin.
     """
     d = p - neighbours
     d2 = np.einsum("ij,ij->i", d, d)
-    idx = np.flatnonzero(d2 <= cbf.d_s**2)
-    d, d2 = d[idx], d2[idx]
-    return -2.0 * d, d2 - cbf.r_s**2, 0.5 * cbf.gamma_s, 0.0, 0.0, idx
+    idx = (d2 <= cbf.d_s**2).nonzero()[0]
+    if len(idx) < len(d2):
+        d, d2 = d.take(idx, 0), d2.take(idx)
+    return -2.0 * d, d2 - cbf.r_s**2, None, idx
 
 
-def connectivity_rows(
-    p: np.ndarray, neighbours: np.ndarray, cbf: CBFConfig, margin: float
-) -> _Rows:
-    """Rows (34) for j in N_ci = {||p - p_j|| <= R_c}: ``2 (p - p_j)^T V <= gamma_c h / 2 - margin``.
+def connectivity_rows(p: np.ndarray, neighbours: np.ndarray, cbf: CBFConfig):
+    """Rows (34), j in N_ci = {||p - p_j|| <= R_c}: ``2 (p - p_j)^T V <= gamma_c h / 2 - margin``.
 
     h = R_c^2 - ||p - p_j||^2 is concave, so one forward-Euler step of length dt loses up to
     ``dt^2 ||V_i - V_j||^2 <= 4 dt^2 alpha_v^2`` against its linearisation. Each of the two UAVs
@@ -264,128 +272,175 @@ def connectivity_rows(
     """
     d = p - neighbours
     d2 = np.einsum("ij,ij->i", d, d)
-    idx = np.flatnonzero(d2 <= cbf.r_c**2)
-    d, d2 = d[idx], d2[idx]
-    return 2.0 * d, cbf.r_c**2 - d2, 0.5 * cbf.gamma_c, 0.0, margin, idx
+    idx = (d2 <= cbf.r_c**2).nonzero()[0]
+    if len(idx) < len(d2):
+        d, d2 = d.take(idx, 0), d2.take(idx)
+    return 2.0 * d, cbf.r_c**2 - d2, None, idx
 
 
-def point_obstacle_rows(p: np.ndarray, centers: np.ndarray, cbf: CBFConfig) -> _Rows:
-    """Paper's point model: ``h = ||p - p_o||^2 - R_s^2``, ``-2 (p - p_o)^T V <= gamma h``.
+def point_obstacle_rows(p: np.ndarray, centers: np.ndarray, cbf: CBFConfig):
+    """Paper's point model: ``h = ||p - p_o||^2 - R_s^2``, ``-2 (p - p_o)^T V <= gamma_obs h``.
 
     Obstacles are static, so the UAV takes the whole rate (no 1/2 split as in (23)).
     """
     d = p - centers
-    h = np.einsum("ij,ij->i", d, d) - cbf.r_s**2
-    return -2.0 * d, h, cbf.gamma_obstacle, 0.0, 0.0, np.arange(len(centers))
+    return -2.0 * d, np.einsum("ij,ij->i", d, d) - cbf.r_s**2, None, np.arange(len(d))
 
 
-def box_obstacle_rows(
-    p: np.ndarray, centers: np.ndarray, half: np.ndarray, cbf: CBFConfig
-) -> _Rows:
-    """Box model: ``h = sdist(p, box)^2 - c^2``, ``-grad h^T V <= gamma h`` (static boxes).
+def box_obstacle_rows(p: np.ndarray, centers: np.ndarray, half: np.ndarray, cbf: CBFConfig):
+    """Box model: ``h = sdist(p, box)^2 - c^2``, ``-grad h^T V <= gamma_obs h`` (static boxes).
 
     Outside the box grad h = 2 (p - closest point). h is convex outside, so forward Euler never
     decreases it faster than its linearisation (no discrete-time margin needed).
     """
     d2, grad = _box_distance_grad(p - centers, half)
-    h = d2 - cbf.obstacle_clearance**2
-    return -grad, h, cbf.gamma_obstacle, 0.0, 0.0, np.arange(len(centers))
+    return -grad, d2 - cbf.obstacle_clearance**2, None, np.arange(len(d2))
 
 
 def target_rows(
-    p: np.ndarray,
-    q: np.ndarray,
-    vq: np.ndarray,
-    half: np.ndarray,
-    heading: float,
-    cbf: CBFConfig,
-) -> _Rows:
-    """The target car as an oriented box moving at V_q: ``-grad h^T V <= gamma h - grad h^T V_q``.
+    p: np.ndarray, q: np.ndarray, vq: np.ndarray, half: np.ndarray, heading: float, cbf: CBFConfig
+):
+    """The target car as an oriented box moving at V_q: ``-grad h^T V <= gamma_obs h + drift``.
 
-    h-dot = grad h . (V - V_q) for a translating box (its heading rate is neglected).
+    h-dot = grad h . (V - V_q) for a translating box (its heading rate is neglected), so
+    ``drift = -grad h . V_q``. Scalar code: this is one row, evaluated at 80 Hz.
     """
     c, s = math.cos(heading), math.sin(heading)
-    d = p - q
-    local = np.array([[c * d[0] + s * d[1], -s * d[0] + c * d[1], d[2]]])
-    d2, gl = _box_distance_grad(local, half[None, :])
-    g = np.array([c * gl[0, 0] - s * gl[0, 1], s * gl[0, 0] + c * gl[0, 1], gl[0, 2]])
+    dx, dy, dz = (p - q).tolist()
+    hx, hy, hz = half.tolist()
+    local = (c * dx + s * dy, -s * dx + c * dy, dz)
+    ex = [abs(a) - b for a, b in zip(local, (hx, hy, hz), strict=True)]
+    if max(ex) < 0.0:  # inside: nearest face
+        ax = ex.index(max(ex))
+        depth = -ex[ax]
+        g = [0.0, 0.0, 0.0]
+        g[ax] = math.copysign(2.0 * depth, local[ax])
+        d2 = -depth * depth
+    else:
+        g = [math.copysign(2.0 * max(e, 0.0), a) for e, a in zip(ex, local, strict=True)]
+        d2 = sum(max(e, 0.0) ** 2 for e in ex)
+    gx, gy, gz = c * g[0] - s * g[1], s * g[0] + c * g[1], g[2]
+    vx, vy, vz = vq.tolist()
     h = d2 - cbf.obstacle_clearance**2
-    return -g[None, :], h, cbf.gamma_obstacle, np.array([-(g @ vq)]), 0.0, np.zeros(1, int)
+    drift = -(gx * vx + gy * vy + gz * vz)
+    return np.array(((-gx, -gy, -gz),)), np.array((h,)), np.array((drift,)), np.zeros(1, int)
 
 
-def floor_rows(p: np.ndarray, cbf: CBFConfig) -> _Rows:
-    """Altitude floor ``h = z - z_min``: ``-V_z <= gamma_z h`` (linear h: exact in discrete time)."""
-    A = np.array([[0.0, 0.0, -1.0]])
-    return A, np.array([p[2] - cbf.z_min]), cbf.gamma_z, 0.0, 0.0, np.zeros(1, int)
+def floor_rows(p: np.ndarray, cbf: CBFConfig):
+    """Altitude floor ``h = z - z_min``: ``-V_z <= gamma_z h`` (linear: exact in discrete time)."""
+    return _FLOOR_A, np.array((p[2] - cbf.z_min,)), None, np.zeros(1, int)
 
 
-def occlusion_rows(
-    p: np.ndarray,
-    centers: np.ndarray,
-    q: np.ndarray,
-    vq: np.ndarray,
-    cbf: CBFConfig,
-    model: str | None = None,
-) -> _Rows:
+_FLOOR_A = np.array(((0.0, 0.0, -1.0),))
+
+
+def occlusion_rows(p: np.ndarray, centers: np.ndarray, q: np.ndarray, vq: np.ndarray, cbf):
     """Occlusion rows (41)-(45) for j in N_oi = {||p_o^j - p|| <= ||n||}, n = r_q - p (36).
 
-    With x = cos(theta) and d = p_o - p, ``theta-dot = -(dx/dd . d-dot + dx/dn . n-dot) / sin``:
+    With x = cos(theta) = d.n / (|d||n|) and d = p_o - p, (41) reads
+    ``theta-dot = -(dx/dd . d-dot + dx/dn . n-dot) / sin(theta)``, where
+    ``dx/dd = n/(|d||n|) - x d/|d|^2`` and ``dx/dn = d/(|d||n|) - x n/|n|^2``.
 
-    * 'paper' (43): n-dot = 0, d-dot = -V, giving A = -(1/sin) dx/dd, b = gamma_o h (45).
-    * 'moving-target': n-dot = V_q - V, giving A = -(1/sin)(dx/dd + dx/dn) and the
-      target term ``drift = -(1/sin) dx/dn . V_q`` in b.
+    * 'paper' (43): n-dot = 0 and d-dot = -V, so A = -(1/sin) dx/dd and b = gamma_o h (45).
+    * 'moving-target': n-dot = V_q - V, so A = -(1/sin)(dx/dd + dx/dn) and the target term
+      ``drift = -(1/sin) dx/dn . V_q`` goes to b.
+
+    The rows are soft in the shield; theta = 0 or pi makes 1/sin singular and is clamped.
     """
-    model = model or cbf.occlusion_model
     n = q - p
-    nn = math.sqrt(n @ n)
+    nn2 = float(n @ n)
     d = centers - p
-    nd = np.sqrt(np.einsum("ij,ij->i", d, d))
-    idx = np.flatnonzero((nd <= nn) & (nd > 1e-9))
-    if nn < 1e-9 or len(idx) == 0:
-        return _EMPTY3, np.zeros(0), cbf.gamma_o, 0.0, 0.0, idx
-    d, nd = d[idx], nd[idx]
-    x = (d @ n) / (nd * nn)
-    x = np.clip(x, -1.0, 1.0)
-    h = np.arccos(x) - cbf.theta_star
+    nd2 = np.einsum("ij,ij->i", d, d)
+    idx = ((nd2 <= nn2) & (nd2 > 1e-18)).nonzero()[0]
+    if nn2 < 1e-18 or not len(idx):
+        return _EMPTY3, np.zeros(0), None, idx[:0]
+    d = d.take(idx, 0)
+    nd2 = nd2.take(idx)
+    inv_dn = 1.0 / np.sqrt(nd2 * nn2)
+    x = np.minimum(np.maximum((d @ n) * inv_dn, -1.0), 1.0)
     inv_sin = 1.0 / np.sqrt(np.maximum(1.0 - x * x, 1e-12))
-    dx_dd = n[None, :] / (nd * nn)[:, None] - (x / nd**2)[:, None] * d
-    if model == "paper":
-        return -inv_sin[:, None] * dx_dd, h, cbf.gamma_o, 0.0, 0.0, idx
-    if model != "moving-target":
-        raise ValueError(f"occlusion_model must be 'paper' or 'moving-target', got {model!r}")
-    dx_dn = d / (nd * nn)[:, None] - (x / nn**2)[:, None] * n[None, :]
-    A = -inv_sin[:, None] * (dx_dd + dx_dn)
-    drift = -inv_sin * (dx_dn @ vq)
-    return A, h, cbf.gamma_o, drift, 0.0, idx
+    h = np.arccos(x) - cbf.theta_star
+    k_n = inv_sin * inv_dn  # A = -k_n n + k_d d  for the paper's model
+    k_d = inv_sin * x / nd2
+    if cbf.occlusion_model == "paper":
+        return k_d[:, None] * d - k_n[:, None] * n, h, None, idx
+    # dx/dn adds -(1/sin)(d/(|d||n|) - x n/|n|^2) to A.
+    k_d2 = k_d - k_n
+    k_n2 = k_n - inv_sin * x / nn2
+    A = k_d2[:, None] * d - k_n2[:, None] * n
+    drift = -(inv_sin * inv_dn) * (d @ vq) + (inv_sin * x / nn2) * float(n @ vq)
+    return A, h, drift, idx
 
 
-def build_rows(
-    ctx: SafetyContext,
-    cbf: CBFConfig,
-    *,
-    obstacle_model: str = "box",
-    connectivity_margin: float = 0.0,
-    target_as_obstacle: bool = True,
-    occlusion: bool = True,
-) -> CBFRows:
-    """All rows of UAV i's QP (47) from its `SafetyContext`, hard families first."""
-    p = ctx.position
-    groups: list[tuple[int, _Rows]] = []
-    if len(ctx.neighbours):
-        groups.append((UAV, collision_rows(p, ctx.neighbours, cbf)))
-    if len(ctx.obstacle_centers):
-        if obstacle_model == "box":
-            rows = box_obstacle_rows(p, ctx.obstacle_centers, ctx.obstacle_half_extents, cbf)
-        elif obstacle_model == "point":
-            rows = point_obstacle_rows(p, ctx.obstacle_centers, cbf)
-        else:
+class RowBuilder:
+    """Builds all rows of UAV i's QP (47) from its `SafetyContext` (one per filter).
+
+    Rates per family: uav gamma_s/2 (23), obstacle and target gamma_obstacle, floor gamma_z,
+    connect gamma_c/2 with `connectivity_margin` (32), occlusion gamma_o (40). The per-layout
+    constants (kind, index pattern, gamma, margin) are cached: this runs at 80 Hz per UAV.
+    """
+
+    def __init__(
+        self,
+        cbf: CBFConfig,
+        *,
+        obstacle_model: str = "box",
+        connectivity_margin: float = 0.0,
+        target_as_obstacle: bool = True,
+        occlusion: bool = True,
+    ) -> None:
+        if obstacle_model not in ("box", "point"):
             raise ValueError(f"obstacle_model must be 'box' or 'point', got {obstacle_model!r}")
-        groups.append((OBSTACLE, rows))
-    has_target = ctx.target_position is not None
-    if has_target and target_as_obstacle:
-        groups.append(
-            (
-                TARGET,
+        if cbf.occlusion_model not in ("paper", "moving-target"):
+            raise ValueError(
+                f"occlusion_model must be 'paper' or 'moving-target', got {cbf.occlusion_model!r}"
+            )
+        self.cbf = cbf
+        self.obstacle_model = obstacle_model
+        self.margin = float(connectivity_margin)
+        self.target_as_obstacle = target_as_obstacle
+        self.occlusion = occlusion
+        self._gammas = (
+            0.5 * cbf.gamma_s,
+            cbf.gamma_obstacle,
+            cbf.gamma_obstacle,
+            cbf.gamma_z,
+            0.5 * cbf.gamma_c,
+            cbf.gamma_o,
+        )
+        self._margins = (0.0, 0.0, 0.0, 0.0, self.margin, 0.0)
+        self._layouts: dict[tuple, tuple] = {}
+
+    def _layout(self, sizes: tuple) -> tuple:
+        lay = self._layouts.get(sizes)
+        if lay is None:
+            lay = (
+                np.repeat(self._gammas, sizes),
+                np.repeat(self._margins, sizes),
+                np.repeat(np.arange(6), sizes),
+            )
+            self._layouts[sizes] = lay
+        return lay
+
+    def __call__(self, ctx: SafetyContext) -> CBFRows:
+        """All member rows of the QP (47) for this context."""
+        cbf = self.cbf
+        p = ctx.position
+        nb, oc = ctx.neighbours, ctx.obstacle_centers
+        has_t = ctx.target_position is not None
+        fams = []
+        if len(nb):
+            fams.append(collision_rows(p, nb, cbf))
+        else:
+            fams.append(_NONE)
+        if not len(oc):
+            fams.append(_NONE)
+        elif self.obstacle_model == "box":
+            fams.append(box_obstacle_rows(p, oc, ctx.obstacle_half_extents, cbf))
+        else:
+            fams.append(point_obstacle_rows(p, oc, cbf))
+        if has_t and self.target_as_obstacle:
+            fams.append(
                 target_rows(
                     p,
                     ctx.target_position,
@@ -393,29 +448,33 @@ def build_rows(
                     ctx.target_half_extents,
                     ctx.target_heading,
                     cbf,
-                ),
+                )
             )
-        )
-    groups.append((FLOOR, floor_rows(p, cbf)))
-    if len(ctx.neighbours):
-        groups.append((CONNECT, connectivity_rows(p, ctx.neighbours, cbf, connectivity_margin)))
-    if has_target and occlusion and len(ctx.obstacle_centers):
-        groups.append(
-            (
-                OCCLUSION,
-                occlusion_rows(
-                    p, ctx.obstacle_centers, ctx.target_position, ctx.target_velocity, cbf
-                ),
-            )
-        )
-    sizes = [len(g[1][5]) for g in groups]
-    k = sum(sizes)
-    A = np.concatenate([g[1][0] for g in groups]) if k else _EMPTY3
-    h = np.concatenate([np.broadcast_to(g[1][1], (s,)) for g, s in zip(groups, sizes)])
-    gamma = np.repeat([g[1][2] for g in groups], sizes)
-    drift = np.concatenate([np.broadcast_to(g[1][3], (s,)) for g, s in zip(groups, sizes)])
-    margin = np.repeat([g[1][4] for g in groups], sizes)
-    kind = np.repeat([g[0] for g in groups], sizes)
-    index = np.concatenate([g[1][5] for g in groups]).astype(int)
-    b = gamma * h + drift - margin
-    return CBFRows(A, b, h, gamma, drift, margin, kind, index)
+        else:
+            fams.append(_NONE)
+        fams.append(floor_rows(p, cbf))
+        fams.append(connectivity_rows(p, nb, cbf) if len(nb) else _NONE)
+        if has_t and self.occlusion and len(oc):
+            fams.append(occlusion_rows(p, oc, ctx.target_position, ctx.target_velocity, cbf))
+        else:
+            fams.append(_NONE)
+        sizes = tuple(len(f[3]) for f in fams)
+        gamma, margin, kind = self._layout(sizes)
+        A = np.concatenate([f[0] for f in fams])
+        h = np.concatenate([f[1] for f in fams])
+        index = np.concatenate([f[3] for f in fams])
+        drift = np.zeros(len(h))
+        if sizes[2]:  # target row
+            drift[sizes[0] + sizes[1]] = fams[2][2][0]
+        if fams[5][2] is not None:  # moving-target occlusion rows
+            drift[len(h) - sizes[5] :] = fams[5][2]
+        b = gamma * h + drift - margin
+        return CBFRows(A, b, h, gamma, drift, margin, kind, index)
+
+
+_NONE = (_EMPTY3, np.zeros(0), None, np.zeros(0, int))
+
+
+def build_rows(ctx: SafetyContext, cbf: CBFConfig, **kwargs) -> CBFRows:
+    """All rows of UAV i's QP (47) (convenience wrapper around `RowBuilder`)."""
+    return RowBuilder(cbf, **kwargs)(ctx)

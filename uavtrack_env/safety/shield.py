@@ -48,22 +48,22 @@ import time
 from dataclasses import dataclass, field
 from typing import Literal
 
+import daqp
 import numpy as np
 import qpsolvers
 
 from uavtrack_env.config import DT, CBFConfig, ControlLimits
-from uavtrack_env.safety.cbf import (
-    CONNECT,
-    CBFRows,
-    SafetyContext,
-    build_rows,
-)
+from uavtrack_env.safety.cbf import CONNECT, CBFRows, RowBuilder, SafetyContext
 
 SOLVERS = ("daqp", "proxqp", "daqp-direct")
-"""QP backends: 'daqp' and 'proxqp' through `qpsolvers.solve_qp`; 'daqp-direct' calls
-`daqp.solve` without qpsolvers' conversions (measured fast path, benchmarks/shield_speed.py)."""
+"""QP backends: 'daqp' and 'proxqp' through `qpsolvers.solve_qp`; 'daqp-direct' (the default)
+calls `daqp.solve` without qpsolvers' problem conversions and checks: ~3 us instead of ~9 us per
+solve here (benchmarks/shield_speed.py). All three are tested to give the same answers."""
 
 _INF = 1e30
+_PRIMAL_TOL = 1e-10
+"""Solver feasibility tolerance (m/s on unit rows). daqp's default 1e-6 lets h creep ~1e-6
+below 0 over many steps at an active barrier; 1e-10 keeps the closed loop at ~1e-10."""
 
 
 @dataclass(frozen=True)
@@ -132,8 +132,6 @@ class ShieldReport:
     """Wall time of certify() in microseconds."""
     hard_violation: float = 0.0
     """Total violation (m/s) of hard rows at the returned action (nonzero only in fallback)."""
-    min_hard_h: float = math.inf
-    """Smallest barrier value of the hard rows (< 0: the state is already unsafe)."""
     slack_per_row: dict[str, float] = field(default_factory=dict)
     """Violation of each violated soft row (m/s)."""
     rows: CBFRows | None = field(default=None, repr=False)
@@ -141,12 +139,19 @@ class ShieldReport:
     neighbour_ids: tuple[int, ...] | None = field(default=None, repr=False)
 
     @property
+    def min_hard_h(self) -> float:
+        """Smallest barrier value of the hard rows (< 0: the state is already unsafe)."""
+        if self.rows is None or not self.rows.hard.any():
+            return math.inf
+        return float(self.rows.h[self.rows.hard].min())
+
+    @property
     def h(self) -> dict[str, float]:
         """Barrier values of all rows by name (for logging and figures)."""
         if self.rows is None:
             return {}
         names = self.rows.names(self.neighbour_ids)
-        return dict(zip(names, self.rows.h.tolist()))
+        return dict(zip(names, self.rows.h.tolist(), strict=True))
 
 
 def check_eq28(cbf: CBFConfig) -> None:
@@ -167,7 +172,7 @@ class SafetyFilter:
         self,
         cbf: CBFConfig = CBFConfig(),  # noqa: B008 (frozen, immutable default)
         limits: ControlLimits = ControlLimits(),  # noqa: B008
-        solver: str = "daqp",
+        solver: str = "daqp-direct",
         **options,
     ) -> None:
         if not isinstance(cbf, CBFConfig):
@@ -203,6 +208,13 @@ class SafetyFilter:
             self._bounds_kind = "box"
         else:
             self._bounds_kind = None
+        self._rows = RowBuilder(
+            cbf,
+            obstacle_model=self.options.obstacle_model,
+            connectivity_margin=self.connectivity_margin,
+            target_as_obstacle=self.options.target_as_obstacle,
+            occlusion=self.options.occlusion,
+        )
         self._lb3 = np.full(3, -self.v_max)
         self._ub3 = np.full(3, self.v_max)
 
@@ -219,54 +231,55 @@ class SafetyFilter:
             raise ValueError(
                 f"u_nominal must have shape (4,) [v_cx, v_cy, v_cz, w_cy], got {u.shape}"
             )
-        if not np.isfinite(u).all():
+        if not math.isfinite(u.sum()):
             raise ValueError(f"u_nominal must be finite, got {u}")
         if not isinstance(ctx, SafetyContext):
             raise ValueError(f"ctx must be a SafetyContext, got {type(ctx).__name__}")
-        opt = self.options
-        rows = build_rows(
-            ctx,
-            self.cbf,
-            obstacle_model=opt.obstacle_model,
-            connectivity_margin=self.connectivity_margin,
-            target_as_obstacle=opt.target_as_obstacle,
-            occlusion=opt.occlusion,
-        )
+        rows = self._rows(ctx)
+        vx, vy, vz, wn = u.tolist()
         c, s = math.cos(ctx.yaw), math.sin(ctx.yaw)
-        R = np.array([[s, 0.0, c], [-c, 0.0, s], [0.0, -1.0, 0.0]])  # cam_to_world(yaw)
+        w = min(max(wn, -self.w_max), self.w_max)
+        vm = self.v_max
+        in_bounds = (
+            abs(vx) <= vm
+            and abs(vy) <= vm
+            and abs(vz) <= vm
+            and vx * vx + vy * vy + vz * vz <= self.alpha_v**2
+        )
+        if in_bounds and w == wn:
+            V = np.array((s * vx + c * vz, -c * vx + s * vz, -vy))  # cam_to_world_vec
+            if rows.A.shape[0] == 0 or (rows.A @ V - rows.b <= self.options.tol).all():
+                return u, ShieldReport(
+                    "nominal", False, 0.0, 0.0, [], time_us=(time.perf_counter() - t0) * 1e6,
+                    rows=rows, neighbour_ids=ctx.neighbour_ids,
+                )  # fmt: skip
+
+        # Rows in camera coordinates (A V^g = A R v_c), normalised to unit normals.
+        R = np.array(((s, 0.0, c), (-c, 0.0, s), (0.0, -1.0, 0.0)))  # cam_to_world(yaw)
         Ac = rows.A @ R
         norms = np.sqrt(np.einsum("ij,ij->i", Ac, Ac))
         zero = norms < 1e-12
         scale = np.where(zero, 1.0, norms)
-        An = Ac / scale[:, None]
         bn = rows.b / scale
         keep = ~zero | (bn < 0.0)
-        if opt.prune:
+        if self.options.prune:
             keep &= bn < self.alpha_v * (1.0 + 1e-9)
         kept = np.flatnonzero(keep)
-        An, bn = An[kept], bn[kept]
+        An = Ac[kept] / scale[kept, None]
+        bn = bn[kept]
         soft = rows.kind[kept] >= CONNECT
 
         v_hat = u[:3]
-        w = min(max(u[3], -self.w_max), self.w_max)
-        tol = opt.tol
-        in_bounds = (
-            abs(v_hat[0]) <= self.v_max
-            and abs(v_hat[1]) <= self.v_max
-            and abs(v_hat[2]) <= self.v_max
-            and v_hat @ v_hat <= self.alpha_v**2
-        )
-        rows_ok = not len(bn) or bool((An @ v_hat <= bn + tol).all())
-        if in_bounds and rows_ok and w == u[3]:
-            return u, self._report("nominal", u, u, rows, ctx, t0, "none", 0, An, bn, soft, kept)
-
         status, solver, calls = "optimal", "closed-form", 0
         v = v_hat if in_bounds else self._project_bounds(v_hat)
-        if v is None or (len(bn) and not (An @ v <= bn + tol).all()):
-            v, status, solver, calls = self._solve_layers(v_hat, An, bn, soft)
-        u_safe = np.array([v[0], v[1], v[2], w])
-        if not np.isfinite(u_safe).all():  # defensive: never hand out NaN
-            u_safe = np.array([0.0, 0.0, 0.0, w])
+        if v is None or (len(bn) and not (An @ v - bn <= self.options.tol).all()):
+            try:
+                v, status, solver, calls = self._solve_layers(v_hat, An, bn, soft)
+            except Exception:  # never let a numerical failure take the UAV down: brake
+                v, status, solver, calls = np.zeros(3), "fallback", "brake", 0
+        u_safe = np.array((v[0], v[1], v[2], w))
+        if not math.isfinite(u_safe.sum()):  # defensive: never hand out NaN
+            u_safe = np.array((0.0, 0.0, 0.0, w))
             status, solver = "fallback", "brake"
         return u_safe, self._report(
             status, u, u_safe, rows, ctx, t0, solver, calls, An, bn, soft, kept
@@ -319,11 +332,16 @@ class SafetyFilter:
         ub = np.concatenate([self._ub3, np.full(ns, _INF)])
         h = bn
         calls = 0
+        v, speed = None, 0.0
         for it in range(self.options.norm_cuts + 1):
             x = self._backend(H, f, G, h, lb, ub)
             calls += 1
             if x is None:
-                return None, calls
+                if v is None:
+                    return None, calls
+                # A cut made the QP degenerate for this backend: keep the previous solution
+                # (feasible for every row) and scale it into the ball (sound, module docstring).
+                return v * (self.alpha_v / speed), calls
             v = x[:3]
             speed = math.sqrt(v @ v)
             if speed <= self.alpha_v * (1.0 + 1e-9):
@@ -340,16 +358,19 @@ class SafetyFilter:
         """One QP solve; None on infeasibility, solver error or an inaccurate answer."""
         try:
             if self.solver == "daqp-direct":
-                import daqp
-
                 nv = len(f)
                 bu = np.concatenate([ub, h])
                 bl = np.concatenate([lb, np.full(len(h), -_INF)])
-                x, _, flag, _ = daqp.solve(H, f, G, bu, bl, np.zeros(nv + len(h), dtype=np.int32))
+                x, _, flag, _ = daqp.solve(
+                    H, f, G, bu, bl, np.zeros(nv + len(h), dtype=np.int32), primal_tol=_PRIMAL_TOL
+                )
                 if flag < 1:
                     return None
             else:
-                kwargs = {"eps_abs": 1e-9, "eps_rel": 0.0} if self.solver == "proxqp" else {}
+                if self.solver == "proxqp":
+                    kwargs = {"eps_abs": _PRIMAL_TOL, "eps_rel": 0.0}
+                else:
+                    kwargs = {"primal_tol": _PRIMAL_TOL}
                 ub_q = np.where(ub >= _INF, np.inf, ub)
                 x = qpsolvers.solve_qp(
                     H,
@@ -377,38 +398,32 @@ class SafetyFilter:
 
     # ----------------------------------------------------------------- report
     def _report(self, status, u, u_safe, rows, ctx, t0, solver, calls, An, bn, soft, kept):
-        changed = status != "nominal"
-        active_rows: list[str] = []
-        slack_total, hard_violation, slack_rows = 0.0, 0.0, {}
-        if changed:
-            v = u_safe[:3]
-            viol = An @ v - bn
-            active_tol = max(self.options.tol, 1e-7)
-            for j in np.flatnonzero(np.abs(viol) <= active_tol):
-                active_rows.append(rows.name(kept[j], ctx.neighbour_ids))
-            over = viol > active_tol
-            for j in np.flatnonzero(over & soft):
-                slack_rows[rows.name(kept[j], ctx.neighbour_ids)] = float(viol[j])
-            slack_total = float(viol[over & soft].sum())
-            hard_violation = float(viol[over & ~soft].sum())
-            if v @ v >= self.alpha_v**2 * (1.0 - 1e-9):
-                active_rows.append("speed")
-            if np.abs(v).max() >= self.v_max * (1.0 - 1e-9):
-                active_rows.append("box")
-            if u_safe[3] != u[3]:
-                active_rows.append("yaw_rate")
-        hard_h = rows.h[rows.hard]
+        """Report for a changed action; slack and violations are measured at the returned action."""
+        v = u_safe[:3]
+        viol = An @ v - bn
+        active_tol = max(self.options.tol, 1e-7)
+        ids = ctx.neighbour_ids
+        active_rows = [rows.name(kept[j], ids) for j in np.flatnonzero(np.abs(viol) <= active_tol)]
+        over = viol > active_tol
+        slack_rows = {rows.name(kept[j], ids): float(viol[j]) for j in np.flatnonzero(over & soft)}
+        slack_total = float(viol[over & soft].sum())
+        hard_violation = float(viol[over & ~soft].sum())
+        if v @ v >= self.alpha_v**2 * (1.0 - 1e-9):
+            active_rows.append("speed")
+        if np.abs(v).max() >= self.v_max * (1.0 - 1e-9):
+            active_rows.append("box")
+        if u_safe[3] != u[3]:
+            active_rows.append("yaw_rate")
         return ShieldReport(
             status=status,
-            active=changed,
-            correction_norm=float(np.linalg.norm(u_safe - u)) if changed else 0.0,
+            active=True,
+            correction_norm=float(np.linalg.norm(u_safe - u)),
             slack=slack_total,
             active_rows=active_rows,
             solver=solver,
             solver_calls=calls,
             time_us=(time.perf_counter() - t0) * 1e6,
             hard_violation=hard_violation,
-            min_hard_h=float(hard_h.min()) if len(hard_h) else math.inf,
             slack_per_row=slack_rows,
             rows=rows,
             neighbour_ids=ctx.neighbour_ids,

@@ -1,0 +1,126 @@
+"""Median microseconds per SafetyFilter.certify() for a realistic context, per QP backend.
+
+Context: 2 neighbours, 10 box obstacles, a moving target; half the calls need a correction
+(the nominal violates a row or a bound), half are safe (fast path, no solver call). Also prints
+the SafetyContext construction time, the row-building time, and the bare QP solve through
+qpsolvers vs. daqp called directly (qpsolvers' own overhead).
+
+Run: /work/venv/bin/python benchmarks/shield_speed.py [--calls 4000]
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import numpy as np
+import qpsolvers
+
+from uavtrack_env.safety import SOLVERS, SafetyContext, SafetyFilter
+from uavtrack_env.safety.cbf import RowBuilder
+
+
+def make_pool(rng: np.random.Generator, size: int) -> list[tuple[np.ndarray, dict]]:
+    """(nominal, context kwargs) pairs; the UAV sits among obstacles near one neighbour."""
+    pool = []
+    for _ in range(size):
+        p = np.array([0.0, 0.0, 3.0]) + rng.uniform(-1, 1, 3)
+        ang = rng.uniform(0, 2 * np.pi, 2)
+        rad = rng.uniform([2.5, 6.0], [4.0, 12.0])
+        nb = p + np.c_[rad * np.cos(ang), rad * np.sin(ang), rng.uniform(-1, 1, 2)]
+        centers = p + np.c_[rng.uniform(-12, 12, (10, 2)), rng.uniform(-2, 0, 10)]
+        kw = {
+            "position": p,
+            "yaw": rng.uniform(-np.pi, np.pi),
+            "neighbours": nb,
+            "obstacle_centers": centers,
+            "obstacle_half_extents": rng.uniform(0.4, 1.2, (10, 3)),
+            "target_position": p + [8.0, 0.0, -2.25] + rng.uniform(-1, 1, 3),
+            "target_velocity": np.array([1.0, 0.2, 0.0]),
+        }
+        u = np.r_[rng.uniform(-9, 9, 3), rng.uniform(-0.5, 0.5)]
+        pool.append((u, kw))
+    return pool
+
+
+def timed(fn, n: int) -> np.ndarray:
+    out = np.empty(n)
+    for i in range(n):
+        t0 = time.perf_counter()
+        fn(i)
+        out[i] = time.perf_counter() - t0
+    return out * 1e6
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--calls", type=int, default=4000, help="certify() calls per backend")
+    ap.add_argument("--seed", type=int, default=0)
+    args = ap.parse_args()
+    rng = np.random.default_rng(args.seed)
+
+    ref = SafetyFilter()
+    pool = make_pool(rng, 4 * args.calls)
+    ctxs = [SafetyContext(**kw) for _, kw in pool]
+    reports = [ref.certify(u, c)[1] for (u, _), c in zip(pool, ctxs, strict=True)]
+    # Only contexts whose state is safe (an unsafe start is not a realistic steady state).
+    status = [r.status if r.min_hard_h >= 0 else "unsafe-start" for r in reports]
+    safe = [i for i, s in enumerate(status) if s == "nominal"]
+    fix = [i for i, s in enumerate(status) if s not in ("nominal", "unsafe-start")]
+    half = min(len(safe), len(fix), args.calls // 2)
+    order = np.array(safe[:half] + fix[:half])
+    rng.shuffle(order)
+    us = [pool[i][0] for i in order]
+    cs = [ctxs[i] for i in order]
+    corrected = np.array([status[i] != "nominal" for i in order])
+    n = len(order)
+    print(f"{n} calls, {corrected.mean():.0%} need a correction "
+          f"(statuses in pool: { {s: status.count(s) for s in set(status)} })")  # fmt: skip
+
+    t_ctx = timed(lambda i: SafetyContext(**pool[order[i]][1]), n)
+    rb = RowBuilder(ref.cbf, connectivity_margin=ref.connectivity_margin)
+    t_rows = timed(lambda i: rb(cs[i]), n)
+    print(f"SafetyContext(...) construction   median {np.median(t_ctx):7.1f} us")
+    print(f"row building (all CBF rows)        median {np.median(t_rows):7.1f} us")
+
+    results = {}
+    for solver in SOLVERS:
+        f = SafetyFilter(solver=solver)
+        for i in range(200):  # warm-up
+            f.certify(us[i % n], cs[i % n])
+        t = timed(lambda i, f=f: f.certify(us[i], cs[i]), n)
+        results[solver] = t
+        print(
+            f"certify [{solver:11s}] median all {np.median(t):7.1f} us | "
+            f"fast path {np.median(t[~corrected]):7.1f} us | "
+            f"corrected {np.median(t[corrected]):7.1f} us | p95 {np.percentile(t, 95):7.1f} us"
+        )
+    base = np.median(results["daqp"])
+    for solver in SOLVERS:
+        print(f"  ratio {solver:11s} / daqp(qpsolvers): {np.median(results[solver]) / base:5.2f}")
+
+    # Bare QP: 3 variables, box bounds, 6 unit rows (a typical corrected call's size).
+    G = rng.normal(size=(6, 3))
+    G /= np.linalg.norm(G, axis=1, keepdims=True)
+    h = rng.uniform(0.2, 2.0, 6)
+    P, q = np.eye(3), -np.array([8.0, 5.0, -3.0])
+    lb, ub = -10 * np.ones(3), 10 * np.ones(3)
+    import daqp
+
+    bu, bl = np.r_[ub, h], np.r_[lb, -1e30 * np.ones(6)]
+    sense = np.zeros(9, dtype=np.int32)
+
+    def via_qpsolvers(solver):
+        return lambda i: qpsolvers.solve_qp(P, q, G, h, lb=lb, ub=ub, solver=solver)
+
+    for name, fn in (
+        ("qpsolvers daqp  ", via_qpsolvers("daqp")),
+        ("qpsolvers proxqp", via_qpsolvers("proxqp")),
+        ("daqp.solve      ", lambda i: daqp.solve(P, q, G, bu, bl, sense)),
+    ):
+        fn(0)
+        print(f"bare QP {name} median {np.median(timed(fn, 3000)):7.1f} us")
+
+
+if __name__ == "__main__":
+    main()

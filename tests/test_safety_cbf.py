@@ -1,0 +1,222 @@
+"""CBF rows (paper eqs. 20-45) against finite differences of their barrier functions."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from uavtrack_env.config import CBFConfig
+from uavtrack_env.safety import SafetyContext, SafetyFilter, build_rows, check_eq28
+from uavtrack_env.safety.cbf import (
+    CONNECT,
+    FLOOR,
+    OBSTACLE,
+    OCCLUSION,
+    TARGET,
+    UAV,
+)
+
+EPS = 1e-6
+
+
+def box_h(p, center, half, clearance, yaw=0.0):
+    """Independent reference: squared distance to a (yawed) box minus clearance^2 (outside)."""
+    c, s = np.cos(yaw), np.sin(yaw)
+    d = np.asarray(p) - center
+    local = np.array([c * d[0] + s * d[1], -s * d[0] + c * d[1], d[2]])
+    out = np.maximum(np.abs(local) - half, 0.0)
+    if (np.abs(local) < half).all():
+        depth = np.min(half - np.abs(local))
+        return -(depth**2) - clearance**2
+    return out @ out - clearance**2
+
+
+def occl_h(p, p_o, n, theta_star):
+    d = p_o - p
+    x = d @ n / (np.linalg.norm(d) * np.linalg.norm(n))
+    return np.arccos(np.clip(x, -1, 1)) - theta_star
+
+
+def random_context(rng, occlusion_model="paper", moving=True):
+    p = np.array([0.0, 0.0, 3.0]) + rng.uniform(-1, 1, 3)
+    nb = p + rng.uniform(-12, 12, (3, 3))
+    centers = p + np.c_[rng.uniform(-8, 8, (5, 2)), rng.uniform(-2, 2, 5)]
+    half = rng.uniform(0.3, 1.5, (5, 3))
+    q = p + np.array([18.0, 0.0, -2.0]) + rng.uniform(-2, 2, 3)
+    vq = rng.uniform(-3, 3, 3) if moving else np.zeros(3)
+    return SafetyContext(
+        position=p,
+        yaw=rng.uniform(-np.pi, np.pi),
+        neighbours=nb,
+        obstacle_centers=centers,
+        obstacle_half_extents=half,
+        target_position=q,
+        target_velocity=vq,
+        target_heading=rng.uniform(-np.pi, np.pi),
+    )
+
+
+def fd_rate(h_of_t):
+    """Central difference of h(t) at t = 0."""
+    return (h_of_t(EPS) - h_of_t(-EPS)) / (2 * EPS)
+
+
+def check_family(rows, kind, h_of, rng, trials=5):
+    """For each row of `kind`: h matches h_of(0) and -A V + drift == d/dt h along V."""
+    sel = np.flatnonzero(rows.kind == kind)
+    assert len(sel) > 0, f"no rows of kind {kind}"
+    for r in sel:
+        j = rows.index[r]
+        assert rows.h[r] == pytest.approx(h_of(j, np.zeros(3), 0.0), rel=1e-9, abs=1e-9)
+        for _ in range(trials):
+            V = rng.uniform(-10, 10, 3)
+            fd = fd_rate(lambda t, j=j, V=V: h_of(j, V, t))
+            assert -rows.A[r] @ V + rows.drift[r] == pytest.approx(fd, rel=1e-5, abs=1e-5)
+        assert rows.b[r] == pytest.approx(
+            rows.gamma[r] * rows.h[r] + rows.drift[r] - rows.margin[r], rel=1e-12
+        )
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_collision_connectivity_floor_rows_match_finite_differences(seed):
+    rng = np.random.default_rng(seed)
+    cbf = CBFConfig()
+    ctx = random_context(rng)
+    rows = build_rows(ctx, cbf, connectivity_margin=0.3)
+    p, nb = ctx.position, ctx.neighbours
+    check_family(rows, UAV, lambda j, V, t: np.sum((p + t * V - nb[j]) ** 2) - cbf.r_s**2, rng)
+    check_family(rows, CONNECT, lambda j, V, t: cbf.r_c**2 - np.sum((p + t * V - nb[j]) ** 2), rng)
+    check_family(rows, FLOOR, lambda j, V, t: p[2] + t * V[2] - cbf.z_min, rng)
+    # The distributed split (23)-(24) halves gamma_s; (32) halves gamma_c and carries the margin.
+    assert np.allclose(rows.gamma[rows.kind == UAV], cbf.gamma_s / 2)
+    assert np.allclose(rows.gamma[rows.kind == CONNECT], cbf.gamma_c / 2)
+    assert np.allclose(rows.margin[rows.kind == CONNECT], 0.3)
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_obstacle_and_moving_target_rows_match_finite_differences(seed):
+    rng = np.random.default_rng(100 + seed)
+    cbf = CBFConfig()
+    ctx = random_context(rng)
+    # put the UAV inside one obstacle to exercise the penetration branch too
+    centers = ctx.obstacle_centers.copy()
+    centers[0] = ctx.position + rng.uniform(-0.1, 0.1, 3)
+    ctx = dataclasses.replace(
+        ctx, obstacle_centers=centers, obstacle_half_extents=np.full((5, 3), 1.0)
+    )
+    p, c = ctx.position, ctx.obstacle_centers
+    half, cl = ctx.obstacle_half_extents, cbf.obstacle_clearance
+    rows = build_rows(ctx, cbf, obstacle_model="box")
+    check_family(rows, OBSTACLE, lambda j, V, t: box_h(p + t * V, c[j], half[j], cl), rng)
+    assert rows.h[rows.kind == OBSTACLE][0] < 0  # inside
+    q, vq, hq, th = (
+        ctx.target_position,
+        ctx.target_velocity,
+        ctx.target_half_extents,
+        ctx.target_heading,
+    )
+    check_family(rows, TARGET, lambda j, V, t: box_h(p + t * V, q + t * vq, hq, cl, th), rng)
+    assert rows.drift[rows.kind == TARGET][0] != 0.0  # the target's motion enters b
+
+    rows = build_rows(ctx, cbf, obstacle_model="point")
+    check_family(rows, OBSTACLE, lambda j, V, t: np.sum((p + t * V - c[j]) ** 2) - cbf.r_s**2, rng)
+
+
+def test_target_row_near_box_surface_and_rotated():
+    """A UAV beside the long side of a yawed car: h = (gap)^2 - c^2 in closed form."""
+    cbf = CBFConfig()
+    heading = 0.7
+    left = np.array([-np.sin(heading), np.cos(heading), 0.0])  # car's +y axis in the world
+    gap = 1.5
+    p = left * (0.9 + gap) + np.array([0.0, 0.0, 0.75])
+    ctx = SafetyContext(position=p, yaw=0.0, target_position=[0, 0, 0.75], target_heading=heading)
+    rows = build_rows(ctx, cbf)
+    r = np.flatnonzero(rows.kind == TARGET)[0]
+    assert rows.h[r] == pytest.approx(gap**2 - cbf.obstacle_clearance**2)
+    assert np.allclose(-rows.A[r], 2 * gap * left)  # gradient points away from the car
+
+
+@pytest.mark.parametrize("model", ["paper", "moving-target"])
+@pytest.mark.parametrize("seed", range(6))
+def test_occlusion_rows_match_finite_differences(model, seed):
+    rng = np.random.default_rng(200 + seed)
+    cbf = CBFConfig(occlusion_model=model)
+    ctx = random_context(rng, occlusion_model=model, moving=True)
+    rows = build_rows(ctx, cbf)
+    p, c, q, vq = ctx.position, ctx.obstacle_centers, ctx.target_position, ctx.target_velocity
+    n0 = q - p
+    ts = cbf.theta_star
+    if model == "paper":  # (43): n held fixed, only the UAV moves
+        h_of = lambda j, V, t: occl_h(p + t * V, c[j], n0, ts)  # noqa: E731
+    else:  # n = (q + t V_q) - (p + t V)
+        h_of = lambda j, V, t: occl_h(p + t * V, c[j], q + t * vq - (p + t * V), ts)  # noqa: E731
+    check_family(rows, OCCLUSION, h_of, rng)
+    if model == "paper":
+        # The printed A of (45): -1/sqrt(1-x^2) (n/(|d||n|) - d cos(theta)/|d|^2).
+        for r in np.flatnonzero(rows.kind == OCCLUSION):
+            d = c[rows.index[r]] - p
+            x = d @ n0 / (np.linalg.norm(d) * np.linalg.norm(n0))
+            a45 = (-1 / np.sqrt(1 - x * x)) * (
+                n0 / (np.linalg.norm(d) * np.linalg.norm(n0)) - d * x / (d @ d)
+            )
+            assert np.allclose(rows.A[r], a45, rtol=1e-9, atol=1e-12)
+            assert rows.b[r] == pytest.approx(cbf.gamma_o * rows.h[r])
+    else:
+        assert np.any(rows.drift[rows.kind == OCCLUSION] != 0.0)
+
+
+def test_neighbour_sets_follow_the_paper():
+    """N_si within D_s (27), N_ci within R_c (34), N_oi = obstacles closer than the target (39)."""
+    cbf = CBFConfig(r_s=2.0, d_s=10.0, r_c=20.0, gamma_s=3.0)
+    ctx = SafetyContext(
+        position=[0, 0, 3],
+        yaw=0.0,
+        neighbours=[[5, 0, 3], [15, 0, 3], [25, 0, 3]],
+        obstacle_centers=[[4, 0.5, 3], [30, 0, 3]],
+        obstacle_half_extents=[[0.5, 0.5, 0.5]] * 2,
+        target_position=[12, 0, 1],
+    )
+    rows = build_rows(ctx, cbf)
+    names = rows.names()
+    assert [n for n in names if n.startswith("uav")] == ["uav:0"]
+    assert [n for n in names if n.startswith("connect")] == ["connect:0", "connect:1"]
+    assert [n for n in names if n.startswith("occlusion")] == ["occlusion:0"]
+    assert {"target", "floor", "obstacle:0", "obstacle:1"} <= set(names)
+    rows = build_rows(dataclasses.replace(ctx, neighbour_ids=(7, 8, 9)), cbf)
+    assert "uav:7" in rows.names(neighbour_ids=(7, 8, 9))
+
+
+def test_eq28_is_enforced():
+    with pytest.raises(ValueError, match=r"eq. \(28\)"):
+        CBFConfig(gamma_s=0.1)
+    bad = CBFConfig()
+    object.__setattr__(bad, "gamma_s", 0.01)  # bypass the dataclass check: the filter re-checks
+    with pytest.raises(ValueError, match=r"eq. \(28\)"):
+        check_eq28(bad)
+    with pytest.raises(ValueError, match=r"eq. \(28\)"):
+        SafetyFilter(cbf=bad)
+    with pytest.raises(ValueError, match="dt"):
+        SafetyFilter(cbf=CBFConfig(gamma_z=200.0))  # gamma dt > 1 breaks discrete invariance
+
+
+@pytest.mark.parametrize(
+    "kwargs",
+    [
+        {"position": [0, 0]},
+        {"position": [0, np.nan, 1]},
+        {"yaw": np.inf},
+        {"neighbours": [[1, 2]]},
+        {"neighbours": [[1, 2, np.nan]]},
+        {"obstacle_centers": [[1, 2, 3]], "obstacle_half_extents": [[1, 1, 1], [1, 1, 1]]},
+        {"obstacle_centers": [[1, 2, 3]], "obstacle_half_extents": [[1, -1, 1]]},
+        {"target_position": [1, 2]},
+        {"target_velocity": [np.nan, 0, 0], "target_position": [1, 2, 3]},
+        {"neighbours": [[1, 2, 3]], "neighbour_ids": (1, 2)},
+    ],
+)
+def test_context_rejects_bad_input(kwargs):
+    base = {"position": [0, 0, 3], "yaw": 0.0}
+    with pytest.raises(ValueError):
+        SafetyContext(**{**base, **kwargs})

@@ -1,0 +1,323 @@
+"""The CBF-QP (47): closed forms, slack exactness, fallbacks and closed-loop forward invariance."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.optimize import linprog, minimize
+
+from uavtrack_env.config import DT, CBFConfig
+from uavtrack_env.geometry import cam_to_world_vec, world_to_cam_vec
+from uavtrack_env.safety import SOLVERS, SafetyContext, SafetyFilter, build_rows
+
+BACKENDS = list(SOLVERS)
+
+
+def ctx_with(**kw):
+    base = {"position": [0.0, 0.0, 5.0], "yaw": 0.4}
+    return SafetyContext(**{**base, **kw})
+
+
+def global_v(u, yaw):
+    return cam_to_world_vec(np.asarray(u[:3], float), yaw)
+
+
+def cam_u(V, yaw, w=0.0):
+    return np.r_[world_to_cam_vec(np.asarray(V, float), yaw), w]
+
+
+@pytest.mark.parametrize("solver", BACKENDS)
+def test_safe_nominal_is_returned_unchanged(solver):
+    f = SafetyFilter(solver=solver)
+    ctx = ctx_with(neighbours=[[6, 0, 5]], obstacle_centers=[[0, 8, 5]],
+                   obstacle_half_extents=[[1, 1, 1]], target_position=[15, 0, 0.75])  # fmt: skip
+    u = np.array([1.0, -0.5, 2.0, 0.3])
+    out, rep = f.certify(u, ctx)
+    assert np.array_equal(out, u)
+    assert rep.status == "nominal" and not rep.active and rep.slack == 0.0
+    assert rep.correction_norm == 0.0 and rep.solver_calls == 0
+
+
+@pytest.mark.parametrize("solver", BACKENDS)
+@pytest.mark.parametrize("case", ["uav", "obstacle", "moving-target", "floor"])
+def test_one_active_row_gives_the_halfspace_projection(solver, case):
+    """With one violated row a^T V <= b, the answer is V_hat - (a^T V_hat - b)/|a|^2 a."""
+    yaw = 0.4
+    cbf = CBFConfig()
+    if case == "uav":  # neighbour 3 m ahead along x: row 6 V_x <= gamma_s (9 - 4) / 2
+        ctx = ctx_with(yaw=yaw, neighbours=[[3.0, 0.0, 5.0]])
+        a, b = np.array([6.0, 0.0, 0.0]), 0.5 * cbf.gamma_s * 5.0
+        V_hat = np.array([5.0, 1.0, 0.5])
+    elif case == "obstacle":  # box face 2 m ahead along y: h = 4 - c^2, grad = (0, -4, 0)
+        ctx = ctx_with(yaw=yaw, obstacle_centers=[[0.0, 3.0, 5.0]],
+                       obstacle_half_extents=[[1.0, 1.0, 1.0]])  # fmt: skip
+        a, b = np.array([0.0, 4.0, 0.0]), cbf.gamma_obstacle * (4.0 - cbf.obstacle_clearance**2)
+        V_hat = np.array([1.0, 6.0, -1.0])
+    elif case == "moving-target":  # car 3 m ahead (rear face 0.7 m away) driving towards us
+        ctx = ctx_with(yaw=yaw, position=[0.0, 0.0, 0.75], target_position=[3.0, 0.0, 0.75],
+                       target_velocity=[-1.0, 0.0, 0.0], target_heading=0.0)  # fmt: skip
+        gap = 3.0 - 2.3
+        g = np.array([-2 * gap, 0.0, 0.0])  # grad h w.r.t. p
+        a = -g
+        b = cbf.gamma_obstacle * (gap**2 - cbf.obstacle_clearance**2) - g @ np.array([-1.0, 0, 0])
+        V_hat = np.array([3.0, 0.5, 1.0])
+    else:  # floor: -V_z <= gamma_z (z - z_min)
+        ctx = ctx_with(yaw=yaw, position=[0.0, 0.0, 1.0])
+        a, b = np.array([0.0, 0.0, -1.0]), cbf.gamma_z * (1.0 - cbf.z_min)
+        V_hat = np.array([2.0, -1.0, -4.0])
+    assert a @ V_hat > b  # the nominal violates the row
+    expected = V_hat - (a @ V_hat - b) / (a @ a) * a
+    out, rep = SafetyFilter(cbf=cbf, solver=solver, occlusion=False).certify(
+        cam_u(V_hat, yaw, 0.2), ctx
+    )
+    assert rep.status == "optimal" and rep.active
+    assert np.allclose(global_v(out, yaw), expected, atol=1e-6)
+    assert out[3] == 0.2
+    assert rep.correction_norm == pytest.approx(np.linalg.norm(expected - V_hat), abs=1e-6)
+    name = {"uav": "uav:0", "obstacle": "obstacle:0", "moving-target": "target", "floor": "floor"}
+    assert name[case] in rep.active_rows
+
+
+def test_speed_and_yaw_rate_bounds_are_projected_in_closed_form():
+    f = SafetyFilter()
+    u = np.array([9.0, -8.0, 9.0, 2.0])  # inside Table II per axis, but ||v|| = 15 > alpha_v
+    out, rep = f.certify(u, ctx_with())
+    assert np.allclose(out[:3], u[:3] * 10.0 / np.linalg.norm(u[:3]))
+    assert (
+        out[3] == 0.6 and rep.status == "optimal" and {"speed", "yaw_rate"} <= set(rep.active_rows)
+    )
+
+
+def reference_qp(V_hat, A, b, alpha, v_max, yaw):
+    """Independent SLSQP solution of min ||V - V_hat||^2 s.t. A V <= b, ||V|| <= alpha, Table II."""
+    cons = [
+        {"type": "ineq", "fun": lambda V: b - A @ V, "jac": lambda V: -A},
+        {"type": "ineq", "fun": lambda V: alpha**2 - V @ V, "jac": lambda V: -2 * V},
+    ]
+    M = world_to_cam_vec(np.eye(3), yaw).T  # v_c = M V
+    box = np.vstack([M, -M])
+    cons.append({"type": "ineq", "fun": lambda V: v_max - box @ V, "jac": lambda V: -box})
+    best = None
+    for x0 in (np.zeros(3), V_hat * 0.1):
+        r = minimize(
+            lambda V: (V - V_hat) @ (V - V_hat),
+            x0,
+            jac=lambda V: 2 * (V - V_hat),
+            constraints=cons,
+            method="SLSQP",
+            options={"ftol": 1e-12, "maxiter": 500},
+        )
+        ok = all((c["fun"](r.x) >= -1e-8).all() for c in cons)  # SLSQP may stop with "positive
+        if ok and (best is None or r.fun < best.fun):  # directional derivative" at the optimum
+            best = r
+    return best.x
+
+
+@pytest.mark.parametrize("solver", BACKENDS)
+def test_norm_bound_with_active_rows_matches_a_reference_solver(solver):
+    rng = np.random.default_rng(3)
+    f = SafetyFilter(solver=solver, occlusion=False)
+    checked = 0
+    for _ in range(15):
+        yaw = rng.uniform(-np.pi, np.pi)
+        nb = rng.normal(size=(2, 3))
+        nb = 3.0 * nb / np.linalg.norm(nb, axis=1, keepdims=True) + [0, 0, 5]
+        ctx = ctx_with(yaw=yaw, neighbours=nb)
+        V_hat = rng.uniform(-10, 10, 3)
+        out, rep = f.certify(cam_u(V_hat, yaw), ctx)
+        rows = build_rows(ctx, f.cbf, connectivity_margin=f.connectivity_margin)
+        ref = reference_qp(V_hat, rows.A, rows.b, f.alpha_v, f.v_max, yaw)
+        V = global_v(out, yaw)
+        assert V @ V <= f.alpha_v**2 * (1 + 1e-9)
+        assert (rows.A @ V - rows.b <= 1e-6 * np.linalg.norm(rows.A, axis=1)).all()
+        assert np.linalg.norm(V - V_hat) <= np.linalg.norm(ref - V_hat) + 1e-4
+        assert np.allclose(V, ref, atol=1e-3)
+        checked += rep.active
+    assert checked >= 10
+
+
+def hard_feasible(rows, alpha):
+    """LP feasibility of all rows inside the cube inscribed in ||V|| <= alpha (independent)."""
+    k = alpha / np.sqrt(3.0)
+    res = linprog(np.zeros(3), A_ub=rows.A, b_ub=rows.b, bounds=[(-k, k)] * 3, method="highs")
+    return res.status == 0
+
+
+def test_slack_is_exactly_zero_whenever_the_hard_problem_is_feasible():
+    rng = np.random.default_rng(11)
+    f = SafetyFilter()
+    feasible_seen = 0
+    for _ in range(150):
+        p = np.array([0, 0, 3.0]) + rng.uniform(-1, 1, 3)
+        ctx = SafetyContext(
+            position=p,
+            yaw=rng.uniform(-np.pi, np.pi),
+            neighbours=p + rng.uniform(-15, 15, (3, 3)),
+            obstacle_centers=p + np.c_[rng.uniform(-6, 6, (6, 2)), rng.uniform(-1, 1, 6)],
+            obstacle_half_extents=rng.uniform(0.2, 0.8, (6, 3)),
+            target_position=p + [12, 0, -2],
+        )
+        rows = build_rows(ctx, f.cbf, connectivity_margin=f.connectivity_margin)
+        if (rows.h[rows.hard] < 0).any() or not hard_feasible(rows, f.alpha_v):
+            continue
+        feasible_seen += 1
+        _, rep = f.certify(np.r_[rng.uniform(-10, 10, 3), 0.0], ctx)
+        assert rep.status in ("nominal", "optimal")
+        assert rep.slack == 0.0 and rep.slack_per_row == {}
+    assert feasible_seen >= 50
+
+
+@pytest.mark.parametrize("solver", BACKENDS)
+def test_conflict_relaxes_the_soft_row_only(solver):
+    """Connectivity needs V_x >= ~0.07 towards a far neighbour; a near one forbids V_x > 1.5e-4."""
+    f = SafetyFilter(solver=solver)
+    yaw = 0.0
+    far, near = 19.99, 2.0001
+    ctx = ctx_with(yaw=yaw, neighbours=[[far, 0, 5], [near, 0, 5]])
+    out, rep = f.certify(cam_u([0.0, 3.0, 0.0], yaw), ctx)
+    cbf = f.cbf
+    vx_max = 0.5 * cbf.gamma_s * (near**2 - cbf.r_s**2) / (2 * near)  # hard collision row (25)
+    b_conn = 0.5 * cbf.gamma_c * (cbf.r_c**2 - far**2) - f.connectivity_margin
+    vx_min = -b_conn / (2 * far)  # soft connectivity row (34): -2 far V_x <= b_conn
+    assert vx_min > vx_max  # the two rows conflict
+    V = global_v(out, yaw)
+    assert rep.status == "relaxed"
+    assert V[0] == pytest.approx(vx_max, abs=1e-7)  # hard row kept, soft one minimally violated
+    assert rep.slack == pytest.approx(vx_min - vx_max, rel=1e-5)
+    assert list(rep.slack_per_row) == ["connect:0"]
+    assert V[1] == pytest.approx(3.0, abs=1e-6)  # the unconstrained direction is untouched
+
+
+@pytest.mark.parametrize("solver", BACKENDS)
+def test_unsafe_state_and_solver_failure_fall_back_without_raising(monkeypatch, solver):
+    f = SafetyFilter(solver=solver)
+    # Squeezed between two neighbours 1 m away on both sides: the hard rows contradict.
+    ctx = ctx_with(neighbours=[[1.0, 0, 5], [-1.0, 0, 5]])
+    out, rep = f.certify(np.array([3.0, 0.0, 0.0, 0.1]), ctx)
+    assert rep.status == "fallback" and np.isfinite(out).all() and rep.min_hard_h < 0
+    assert rep.hard_violation > 0
+
+    def boom(*args, **kwargs):
+        raise RuntimeError("solver crashed")
+
+    monkeypatch.setattr("daqp.solve", boom)
+    monkeypatch.setattr("qpsolvers.solve_qp", boom)
+    out, rep = f.certify(np.array([3.0, 0.0, 0.0, 0.1]), ctx)
+    assert rep.status == "fallback" and rep.solver == "brake"
+    assert np.array_equal(out, [0.0, 0.0, 0.0, 0.1])  # brake, keep the yaw rate
+
+
+@pytest.mark.parametrize(
+    "u", [np.array([np.nan, 0, 0, 0]), np.zeros(3), np.zeros((4, 1)), [0, 0, np.inf, 0]]
+)
+def test_bad_action_raises_value_error(u):
+    with pytest.raises(ValueError):
+        SafetyFilter().certify(u, ctx_with())
+
+
+def test_bad_construction_raises():
+    with pytest.raises(ValueError):
+        SafetyFilter().certify(np.zeros(4), {"position": [0, 0, 1]})
+    with pytest.raises(ValueError):
+        SafetyFilter(solver="osqp")
+    with pytest.raises(ValueError):
+        SafetyFilter(obstacle_model="sphere")
+    with pytest.raises(TypeError):
+        SafetyFilter(not_an_option=1)
+
+
+def test_report_logs_barrier_values_by_name():
+    ctx = ctx_with(neighbours=[[6, 0, 5]], neighbour_ids=(4,), obstacle_centers=[[0, 8, 5]],
+                   obstacle_half_extents=[[1, 1, 1]], target_position=[15, 0, 0.75])  # fmt: skip
+    _, rep = SafetyFilter().certify(np.zeros(4), ctx)
+    assert rep.h["uav:4"] == pytest.approx(36 - 4)
+    assert rep.h["floor"] == pytest.approx(5 - 0.5)
+    assert rep.h["obstacle:0"] == pytest.approx(7**2 - 0.75**2)
+
+
+# ----------------------------------------------------------------------------- closed loop
+# Boxes inside and outside the ring of radius 7 on which the UAVs start (clear of it).
+OBST_C = np.array([[3.0, 0.0, 1.5], [-2.5, 2.5, 2.0], [0.0, -10.5, 1.0], [-10.0, -4.0, 3.0]])
+OBST_H = np.array([[1.0, 1.0, 1.5], [0.8, 0.8, 2.0], [1.5, 0.6, 1.0], [0.7, 0.7, 3.0]])
+TARGET = np.array([10.0, 10.0, 0.75])
+
+
+def box_clearance(p, c, h):
+    return np.linalg.norm(np.maximum(np.abs(p - c) - h, 0.0))
+
+
+def run_closed_loop(n, policy, seed, steps=2000, obstacle_model="box"):
+    """Single integrators at 80 Hz, each UAV certifying with its own (distributed) context."""
+    rng = np.random.default_rng(seed)
+    cbf = CBFConfig()
+    f = SafetyFilter(cbf=cbf, obstacle_model=obstacle_model)
+    ang = np.linspace(0, 2 * np.pi, n, endpoint=False) + 0.3
+    p = np.c_[7.0 * np.cos(ang), 7.0 * np.sin(ang), rng.uniform(2.0, 4.0, n)]
+    yaw = rng.uniform(-np.pi, np.pi, n)
+    worst = {"uav": np.inf, "obstacle": np.inf, "connect": np.inf, "floor": np.inf}
+    assert (
+        min(box_clearance(pi, c, h) for pi in p for c, h in zip(OBST_C, OBST_H, strict=True)) > 2.0
+    )
+    for k in range(steps):
+        V = np.zeros((n, 3))
+        w = np.zeros(n)
+        for i in range(n):
+            others = np.delete(np.arange(n), i)
+            dist = np.linalg.norm(p[others] - p[i], axis=1)
+            nb = others[dist <= cbf.r_c]
+            ctx = SafetyContext(
+                position=p[i], yaw=yaw[i], neighbours=p[nb], neighbour_ids=tuple(nb),
+                obstacle_centers=OBST_C, obstacle_half_extents=OBST_H, target_position=TARGET,
+            )  # fmt: skip
+            u_nom = policy(i, k, p, yaw, rng)
+            u, rep = f.certify(u_nom, ctx)
+            assert rep.status != "fallback", (k, i, rep)
+            V[i] = cam_to_world_vec(u[:3], yaw[i])
+            w[i] = -u[3]
+        p = p + DT * V
+        yaw = yaw + DT * w
+        d2 = np.sum((p[:, None] - p[None]) ** 2, -1)[np.triu_indices(n, 1)]
+        worst["uav"] = min(worst["uav"], (d2 - cbf.r_s**2).min())
+        worst["connect"] = min(worst["connect"], (cbf.r_c**2 - d2).min())
+        worst["floor"] = min(worst["floor"], (p[:, 2] - cbf.z_min).min())
+        if obstacle_model == "box":
+            cl = min(
+                box_clearance(pi, c, h) for pi in p for c, h in zip(OBST_C, OBST_H, strict=True)
+            )
+            worst["obstacle"] = min(worst["obstacle"], cl**2 - cbf.obstacle_clearance**2)
+        else:
+            dd = np.sum((p[:, None] - OBST_C[None]) ** 2, -1)
+            worst["obstacle"] = min(worst["obstacle"], (dd - cbf.r_s**2).min())
+    return worst
+
+
+def toward(p_from, p_to, yaw, w=0.0):
+    d = p_to - p_from
+    return np.r_[world_to_cam_vec(10.0 * d / max(np.linalg.norm(d), 1e-9), yaw), w]
+
+
+POLICIES = {
+    "random": lambda i, k, p, yaw, rng: np.r_[rng.uniform(-10, 10, 3), rng.uniform(-0.6, 0.6)],
+    "seek-uav": lambda i, k, p, yaw, rng: toward(p[i], p[(i + 1) % len(p)], yaw[i], 0.3),
+    "seek-obstacle": lambda i, k, p, yaw, rng: toward(p[i], OBST_C[i % len(OBST_C)], yaw[i]),
+    "seek-ground": lambda i, k, p, yaw, rng: toward(p[i], p[i] * [0.5, 0.5, 0.0], yaw[i]),
+    "flee": lambda i, k, p, yaw, rng: toward(p.mean(0), p[i] + [0, 0, 1e-3], yaw[i]),
+}
+
+
+@pytest.mark.parametrize(
+    ("policy", "n", "model"),
+    [
+        ("random", 4, "box"),
+        ("seek-uav", 3, "box"),
+        ("seek-uav", 6, "box"),
+        ("seek-obstacle", 4, "box"),
+        ("seek-obstacle", 4, "point"),
+        ("seek-ground", 5, "box"),
+        ("flee", 4, "box"),
+    ],
+)
+def test_closed_loop_forward_invariance(policy, n, model):
+    worst = run_closed_loop(n, POLICIES[policy], seed=n, obstacle_model=model)
+    for name, h in worst.items():
+        assert h >= -1e-9, (name, h)

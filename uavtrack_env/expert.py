@@ -1,0 +1,148 @@
+"""The paper's expert: per UAV, UKF (II-E) -> NMPC (18)-(19) -> distributed CBF-QP (47).
+
+It sees only what a real UAV has: the detector's report, its own GPS/IMU state, the positions its
+neighbours sent, the known obstacle map and its reference. It never reads ``info["truth"]``.
+"""
+
+from __future__ import annotations
+
+import time
+from collections import defaultdict
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .config import CBFConfig, NMPCConfig
+from .control import NMPC, NMPCOptions, NMPCResult
+from .estimation import Estimate, Measurement, TargetEstimator, UKFConfig
+from .geometry import world_to_cam_vec
+from .safety import SafetyContext, SafetyFilter, ShieldReport
+
+
+@dataclass
+class AgentState:
+    """One UAV's onboard pipeline and its last outputs."""
+
+    estimator: TargetEstimator
+    nmpc: NMPC
+    estimate: Estimate | None = None
+    last_nmpc: NMPCResult | None = None
+    last_report: ShieldReport | None = None
+    last_u: np.ndarray = field(default_factory=lambda: np.zeros(4))
+
+
+class ExpertPolicy:
+    """UKF -> NMPC -> CBF-QP for every agent; ``policy(obs, infos) -> {agent: action}``.
+
+    Actions are the env's normalised [-1, 1]^4. ``timings[stage]`` holds per-agent-step wall
+    times (s) of 'ukf', 'nmpc' and 'qp'. ``use_cbf=False`` skips the QP (the ``--no-cbf`` ablation).
+    """
+
+    def __init__(
+        self,
+        agents: list[str],
+        references: dict[str, np.ndarray],
+        obstacle_centers: np.ndarray,
+        obstacle_half_extents: np.ndarray,
+        env_config,
+        nmpc: NMPCConfig | None = None,
+        nmpc_options: NMPCOptions | None = None,
+        ukf: UKFConfig | None = None,
+        cbf: CBFConfig | None = None,
+        use_cbf: bool = True,
+        qp_solver: str | None = None,
+        **shield_options,
+    ) -> None:
+        self.config = env_config
+        self.scale = env_config.limits.scale
+        self.use_cbf = use_cbf
+        self.obstacle_centers = np.asarray(obstacle_centers, float).reshape(-1, 3)
+        self.obstacle_half_extents = np.asarray(obstacle_half_extents, float).reshape(-1, 3)
+        if qp_solver is not None:
+            shield_options["solver"] = qp_solver
+        self.shield = SafetyFilter(cbf or env_config.cbf, env_config.limits, **shield_options)
+        nmpc_cfg = nmpc or NMPCConfig()
+        self.agents: dict[str, AgentState] = {
+            a: AgentState(
+                estimator=TargetEstimator(env_config.camera, ukf or UKFConfig()),
+                nmpc=NMPC(
+                    references[a], nmpc_cfg, env_config.limits, env_config.features, nmpc_options
+                ),
+            )
+            for a in agents
+        }
+        self.timings: dict[str, list[float]] = defaultdict(list)
+
+    @classmethod
+    def from_env(cls, env, **kwargs) -> ExpertPolicy:
+        """Build for a reset env: its agents, references and known obstacle map."""
+        if env.layout is None:
+            raise RuntimeError("ExpertPolicy.from_env needs an env that has been reset")
+        refs = {a: env.layout.references[i] for i, a in enumerate(env.possible_agents)}
+        return cls(
+            env.possible_agents,
+            refs,
+            env.layout.obstacle_centers,
+            env.layout.obstacle_half_extents,
+            env.config,
+            **kwargs,
+        )
+
+    def reset(self) -> None:
+        """Forget all estimates and warm starts (call after env.reset)."""
+        for st in self.agents.values():
+            st.estimate, st.last_nmpc, st.last_report = None, None, None
+            st.last_u = np.zeros(4)
+            st.nmpc.reset()
+        self.timings.clear()
+
+    def __call__(self, obs: dict, infos: dict[str, dict]) -> dict[str, np.ndarray]:
+        return {agent: self.act(agent, infos[agent]) for agent in obs}
+
+    def act(self, agent: str, info: dict) -> np.ndarray:
+        """One UAV's action from its own info (measurement, own state, messages)."""
+        st = self.agents[agent]
+        own, m = info["own"], info["measurement"]
+        pos, yaw = own["position"], own["yaw"]
+        meas = Measurement(m["u"], m["v"], m["depth"], m["psi"]) if m["detected"] else None
+
+        t0 = time.perf_counter()
+        if st.estimate is None:
+            if meas is None:
+                return np.zeros(4, np.float32)  # nothing seen yet: hover
+            st.estimate = st.estimator.reset(meas, pos, yaw)
+        else:
+            # The UAV's own velocity (IMU/odometry) in the camera frame, as applied over the step.
+            u_meas = np.concatenate([world_to_cam_vec(own["velocity"], yaw), [-own["yaw_rate"]]])
+            st.estimate = st.estimator.step(u_meas, pos, yaw, meas)
+        est = st.estimate
+        t1 = time.perf_counter()
+        aq_cam = world_to_cam_vec(est.target_acceleration, yaw)
+        st.last_nmpc = res = st.nmpc.solve(est.s, est.vq_cam, aq_cam, u_applied=st.last_u)
+        u = res.u
+        t2 = time.perf_counter()
+        if self.use_cbf:
+            nb = info["neighbours"]
+            ctx = SafetyContext(
+                position=pos,
+                yaw=yaw,
+                neighbours=np.array(list(nb.values()), float).reshape(-1, 3),
+                obstacle_centers=self.obstacle_centers,
+                obstacle_half_extents=self.obstacle_half_extents,
+                target_position=est.target_position,
+                target_velocity=est.target_velocity,
+            )
+            u, st.last_report = self.shield.certify(u, ctx)
+        t3 = time.perf_counter()
+        self.timings["ukf"].append(t1 - t0)
+        self.timings["nmpc"].append(t2 - t1)
+        self.timings["qp"].append(t3 - t2)
+        st.last_u = np.asarray(u, float)
+        return np.clip(st.last_u / self.scale, -1.0, 1.0).astype(np.float32)
+
+    def slacks(self) -> dict[str, float]:
+        """The QP slack of each agent's last step (0 without a report)."""
+        return {
+            a: (st.last_report.slack if st.last_report is not None else 0.0)
+            for a, st in self.agents.items()
+        }
