@@ -14,18 +14,18 @@ import numpy as np
 
 from .config import CBFConfig, NMPCConfig
 from .control import NMPC, NMPCOptions, NMPCResult
-from .estimation import Estimate, Measurement, TargetEstimator, UKFConfig
+from .estimation import UKFConfig
 from .geometry import world_to_cam_vec
-from .safety import SafetyContext, SafetyFilter, ShieldReport
+from .onboard import OnboardTracker, safety_context
+from .safety import SafetyFilter, ShieldReport
 
 
 @dataclass
 class AgentState:
     """One UAV's onboard pipeline and its last outputs."""
 
-    estimator: TargetEstimator
+    tracker: OnboardTracker
     nmpc: NMPC
-    estimate: Estimate | None = None
     last_nmpc: NMPCResult | None = None
     last_report: ShieldReport | None = None
     last_u: np.ndarray = field(default_factory=lambda: np.zeros(4))
@@ -64,7 +64,7 @@ class ExpertPolicy:
         nmpc_cfg = nmpc or NMPCConfig()
         self.agents: dict[str, AgentState] = {
             a: AgentState(
-                estimator=TargetEstimator(env_config.camera, ukf or UKFConfig()),
+                tracker=OnboardTracker(env_config.camera, ukf),
                 nmpc=NMPC(
                     references[a], nmpc_cfg, env_config.limits, env_config.features, nmpc_options
                 ),
@@ -91,7 +91,8 @@ class ExpertPolicy:
     def reset(self) -> None:
         """Forget all estimates and warm starts (call after env.reset)."""
         for st in self.agents.values():
-            st.estimate, st.last_nmpc, st.last_report = None, None, None
+            st.tracker.reset()
+            st.last_nmpc, st.last_report = None, None
             st.last_u = np.zeros(4)
             st.nmpc.reset()
         self.timings.clear()
@@ -102,36 +103,18 @@ class ExpertPolicy:
     def act(self, agent: str, info: dict) -> np.ndarray:
         """One UAV's action from its own info (measurement, own state, messages)."""
         st = self.agents[agent]
-        own, m = info["own"], info["measurement"]
-        pos, yaw = own["position"], own["yaw"]
-        meas = Measurement(m["u"], m["v"], m["depth"], m["psi"]) if m["detected"] else None
-
         t0 = time.perf_counter()
-        if st.estimate is None:
-            if meas is None:
-                return np.zeros(4, np.float32)  # nothing seen yet: hover
-            st.estimate = st.estimator.reset(meas, pos, yaw)
-        else:
-            # The UAV's own velocity (IMU/odometry) in the camera frame, as applied over the step.
-            u_meas = np.concatenate([world_to_cam_vec(own["velocity"], yaw), [-own["yaw_rate"]]])
-            st.estimate = st.estimator.step(u_meas, pos, yaw, meas)
-        est = st.estimate
+        est = st.tracker.update(info)
+        if est is None:
+            return np.zeros(4, np.float32)  # nothing seen yet: hover
+        yaw = info["own"]["yaw"]
         t1 = time.perf_counter()
         aq_cam = world_to_cam_vec(est.target_acceleration, yaw)
         st.last_nmpc = res = st.nmpc.solve(est.s, est.vq_cam, aq_cam, u_applied=st.last_u)
         u = res.u
         t2 = time.perf_counter()
         if self.use_cbf:
-            nb = info["neighbours"]
-            ctx = SafetyContext(
-                position=pos,
-                yaw=yaw,
-                neighbours=np.array(list(nb.values()), float).reshape(-1, 3),
-                obstacle_centers=self.obstacle_centers,
-                obstacle_half_extents=self.obstacle_half_extents,
-                target_position=est.target_position,
-                target_velocity=est.target_velocity,
-            )
+            ctx = safety_context(info, est, self.obstacle_centers, self.obstacle_half_extents)
             u, st.last_report = self.shield.certify(u, ctx)
         t3 = time.perf_counter()
         self.timings["ukf"].append(t1 - t0)
