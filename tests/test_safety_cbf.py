@@ -6,6 +6,7 @@ import dataclasses
 
 import numpy as np
 import pytest
+from scipy.optimize import minimize_scalar
 
 from uavtrack_env.config import CBFConfig
 from uavtrack_env.safety import SafetyContext, SafetyFilter, build_rows, check_eq28
@@ -142,7 +143,7 @@ def test_target_row_near_box_surface_and_rotated():
 @pytest.mark.parametrize("seed", range(6))
 def test_occlusion_rows_match_finite_differences(model, seed):
     rng = np.random.default_rng(200 + seed)
-    cbf = CBFConfig(occlusion_model=model)
+    cbf = CBFConfig(occlusion_model=model, occlusion_point="centre", occlusion_size_margin=False)
     ctx = random_context(rng, occlusion_model=model, moving=True)
     rows = build_rows(ctx, cbf)
     p, c, q, vq = ctx.position, ctx.obstacle_centers, ctx.target_position, ctx.target_velocity
@@ -165,6 +166,41 @@ def test_occlusion_rows_match_finite_differences(model, seed):
             assert rows.b[r] == pytest.approx(cbf.gamma_o * rows.h[r])
     else:
         assert np.any(rows.drift[rows.kind == OCCLUSION] != 0.0)
+
+
+def axis_occl_h(p, center, half, n, theta_star):
+    """Independent h of the 'axis' occluder with the size margin: min over the box's vertical
+    axis of theta, minus theta* and the angular radius asin(r_xy / b), b the horizontal distance
+    to the axis."""
+
+    def theta(z):
+        return occl_h(p, np.array([center[0], center[1], z]), n, 0.0)
+
+    lo, hi = center[2] - half[2], center[2] + half[2]
+    res = minimize_scalar(theta, bounds=(lo, hi), method="bounded", options={"xatol": 1e-12})
+    z = min((lo, hi, res.x), key=theta)
+    b = np.hypot(center[0] - p[0], center[1] - p[1])
+    return theta(z) - theta_star - np.arcsin(min(np.hypot(half[0], half[1]) / b, 0.99))
+
+
+@pytest.mark.parametrize("model", ["paper", "moving-target"])
+@pytest.mark.parametrize("seed", range(6))
+def test_axis_occlusion_rows_with_size_margin_match_finite_differences(model, seed):
+    """The default occluder (closest point of the box's axis, cone widened by the box's angular
+    radius): h equals an independent minimisation and its rows its finite-difference rate."""
+    rng = np.random.default_rng(300 + seed)
+    cbf = CBFConfig(occlusion_model=model, occlusion_point="axis", occlusion_size_margin=True)
+    ctx = random_context(rng, occlusion_model=model, moving=True)
+    rows = build_rows(ctx, cbf)
+    p, c, hx = ctx.position, ctx.obstacle_centers, ctx.obstacle_half_extents
+    q, vq, ts = ctx.target_position, ctx.target_velocity, cbf.theta_star
+    if model == "paper":
+        h_of = lambda j, V, t: axis_occl_h(p + t * V, c[j], hx[j], q - p, ts)  # noqa: E731
+    else:
+        h_of = lambda j, V, t: axis_occl_h(  # noqa: E731
+            p + t * V, c[j], hx[j], q + t * vq - (p + t * V), ts
+        )
+    check_family(rows, OCCLUSION, h_of, rng)
 
 
 def test_neighbour_sets_follow_the_paper():

@@ -149,10 +149,19 @@ class CBFConfig:
     """Not in the paper: CBF rate of the altitude floor."""
     occlusion_model: Literal["paper", "moving-target"] = "paper"
     """'paper': eq. (43), n-dot = 0; 'moving-target': n-dot from the estimated target velocity."""
+    occlusion_point: Literal["centre", "axis"] = "axis"
+    """Occluder point p_o of eq. (38): the box 'centre' (paper) or the point of its vertical axis
+    closest in angle to the line of sight ('axis'; tall boxes are not points)."""
+    occlusion_size_margin: bool = True
+    """Not in the paper: widen theta* by the box's angular radius asin(r_xy / |p_o - p|)."""
 
     def __post_init__(self) -> None:
         _require(0 < self.r_s < self.d_s <= self.r_c, "need 0 < R_s < D_s <= R_c (eq. 27)")
         _require(0 < self.theta_star_deg < 90, "theta* must lie in (0, 90) degrees")
+        _require(
+            self.occlusion_point in ("centre", "axis"),
+            f"occlusion_point must be 'centre' or 'axis', got {self.occlusion_point!r}",
+        )
         for name in ("gamma_s", "gamma_c", "gamma_o", "alpha_v", "alpha_omega", "gamma_z"):
             _require(getattr(self, name) > 0, f"{name} must be > 0, got {getattr(self, name)}")
         bound = 4.0 * self.alpha_v * self.r_s / (self.d_s**2 - self.r_s**2)

@@ -334,8 +334,47 @@ def floor_rows(p: np.ndarray, cbf: CBFConfig):
 _FLOOR_A = np.array(((0.0, 0.0, -1.0),))
 
 
-def occlusion_rows(p: np.ndarray, centers: np.ndarray, q: np.ndarray, vq: np.ndarray, cbf):
+def occluder_points(
+    p: np.ndarray, centers: np.ndarray, half: np.ndarray, q: np.ndarray, mode: str
+) -> np.ndarray:
+    """p_o^j of eq. (38) per obstacle: its centre (paper), or on its vertical axis the point of
+    least angle to the line of sight n = q - p ('axis').
+
+    On the line (c_x, c_y, z), cos(theta) = (a + t n_z) / sqrt(b^2 + t^2) with t = z - p_z,
+    a = horizontal part of (c - p).n/|n|, b its horizontal distance; its only stationary point is
+    t = n_z b^2 / a, so the largest cos on the box's height is at that point (clipped) or at an
+    end. theta is then the minimum over the axis, whose gradient at the minimiser is the gradient
+    at fixed z (Danskin), so the rows below stay exact.
+    """
+    if mode == "centre" or not len(centers):
+        return centers
+    n = q - p
+    n = n / max(float(np.linalg.norm(n)), 1e-12)
+    w = centers[:, :2] - p[:2]
+    a = w @ n[:2]
+    b2 = np.einsum("ij,ij->i", w, w)
+    lo, hi = centers[:, 2] - half[:, 2] - p[2], centers[:, 2] + half[:, 2] - p[2]
+    safe_a = np.where(np.abs(a) > 1e-12, a, 1e-12)
+    t = np.stack([lo, hi, np.clip(n[2] * b2 / safe_a, lo, hi)], 1)  # (m, 3) candidates
+    cos = (a[:, None] + t * n[2]) / np.sqrt(b2[:, None] + t * t + 1e-300)
+    best = t[np.arange(len(t)), np.argmax(cos, axis=1)]
+    return np.column_stack([centers[:, :2], p[2] + best])
+
+
+def occlusion_rows(
+    p: np.ndarray,
+    centers: np.ndarray,
+    q: np.ndarray,
+    vq: np.ndarray,
+    cbf,
+    radius: np.ndarray | None = None,
+):
     """Occlusion rows (41)-(45) for j in N_oi = {||p_o^j - p|| <= ||n||}, n = r_q - p (36).
+
+    ``centers`` are the occluder points p_o^j (see `occluder_points`). With ``radius`` (the
+    boxes' horizontal half-diagonals r_j), h = theta - theta* - asin(r_j / b_j), b_j the
+    horizontal distance to the box's axis: the keep-out cone grows by the obstacle's angular
+    radius (not in the paper).
 
     With x = cos(theta) = d.n / (|d||n|) and d = p_o - p, (41) reads
     ``theta-dot = -(dx/dd . d-dot + dx/dn . n-dot) / sin(theta)``, where
@@ -363,12 +402,25 @@ def occlusion_rows(p: np.ndarray, centers: np.ndarray, q: np.ndarray, vq: np.nda
     k_n = inv_sin * inv_dn  # A = -k_n n + k_d d  for the paper's model
     k_d = inv_sin * x / nd2
     if cbf.occlusion_model == "paper":
-        return k_d[:, None] * d - k_n[:, None] * n, h, None, idx
-    # dx/dn adds -(1/sin)(d/(|d||n|) - x n/|n|^2) to A.
-    k_d2 = k_d - k_n
-    k_n2 = k_n - inv_sin * x / nn2
-    A = k_d2[:, None] * d - k_n2[:, None] * n
-    drift = -(inv_sin * inv_dn) * (d @ vq) + (inv_sin * x / nn2) * float(n @ vq)
+        A, drift = k_d[:, None] * d - k_n[:, None] * n, None
+    else:
+        # dx/dn adds -(1/sin)(d/(|d||n|) - x n/|n|^2) to A.
+        k_d2 = k_d - k_n
+        k_n2 = k_n - inv_sin * x / nn2
+        A = k_d2[:, None] * d - k_n2[:, None] * n
+        drift = -(inv_sin * inv_dn) * (d @ vq) + (inv_sin * x / nn2) * float(n @ vq)
+    if radius is not None:
+        # beta = asin(r / b), b the horizontal distance to the box's axis (independent of the
+        # occluder's height, so Danskin's argument above still holds); A = -dh/dp gains
+        # d beta/dp = r w / (b^3 sqrt(1 - r^2/b^2)) with w the horizontal part of p_o - p.
+        b2 = np.maximum(d[:, 0] ** 2 + d[:, 1] ** 2, 1e-18)
+        ratio = radius.take(idx) / np.sqrt(b2)
+        clipped = ratio >= 0.99
+        ratio = np.minimum(ratio, 0.99)
+        h = h - np.arcsin(ratio)
+        k_b = np.where(clipped, 0.0, ratio / (b2 * np.sqrt(1.0 - ratio * ratio)))
+        A = A.copy()
+        A[:, :2] += k_b[:, None] * d[:, :2]
     return A, h, drift, idx
 
 
@@ -455,7 +507,11 @@ class RowBuilder:
         fams.append(floor_rows(p, cbf))
         fams.append(connectivity_rows(p, nb, cbf) if len(nb) else _NONE)
         if has_t and self.occlusion and len(oc):
-            fams.append(occlusion_rows(p, oc, ctx.target_position, ctx.target_velocity, cbf))
+            half = ctx.obstacle_half_extents
+            q = ctx.target_position
+            points = occluder_points(p, oc, half, q, cbf.occlusion_point)
+            radius = np.hypot(half[:, 0], half[:, 1]) if cbf.occlusion_size_margin else None
+            fams.append(occlusion_rows(p, points, q, ctx.target_velocity, cbf, radius))
         else:
             fams.append(_NONE)
         sizes = tuple(len(f[3]) for f in fams)

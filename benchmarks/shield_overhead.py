@@ -1,0 +1,111 @@
+"""Env steps/s with and without `CBFShield`, and the shield's cost per agent-step (medians).
+
+Setting: n = 3 UAVs, seeded random worlds, uniform random actions in [-1, 1]^4 (the shield is
+active on most steps) and small actions (|a| <= 0.05, it almost never is). Pinned to one core with
+single-threaded BLAS. The shield's cost per agent-step is split into
+
+* certify: `CBFShield.certify` = SafetyContext from the info + rows + CBF-QP (47) (the goal:
+  <= 100 us per agent-step);
+* tracker: the per-agent UKF update that gives the shield its target estimate;
+* total: (mean shielded step - mean bare step) / n, everything the wrapper adds.
+
+Steps/s are throughputs (steps / total step time); component costs are medians.
+
+Run: /work/venv/bin/python benchmarks/shield_overhead.py [--steps 2000] [--repeats 3]
+"""
+
+from __future__ import annotations
+
+import os
+
+for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
+
+import argparse  # noqa: E402
+import functools  # noqa: E402
+import time  # noqa: E402
+
+import numpy as np  # noqa: E402
+
+from uavtrack_env import uavtrack_v0  # noqa: E402
+from uavtrack_env.wrappers import CBFShield  # noqa: E402
+
+N_UAVS = 3
+
+
+def _timed(fn, sink: list[float]):
+    """``fn`` recording its wall time (s) into ``sink`` (benchmark-only instrumentation)."""
+
+    @functools.wraps(fn)
+    def run(*args, **kwargs):
+        t0 = time.perf_counter()
+        out = fn(*args, **kwargs)
+        sink.append(time.perf_counter() - t0)
+        return out
+
+    return run
+
+
+def run(shield: bool, amplitude: float, steps: int, seed: int) -> dict[str, np.ndarray]:
+    """Step times (s) over ``steps`` steps of fresh seeded episodes, plus component times."""
+    times: dict[str, list[float]] = {"step": [], "certify": [], "tracker": [], "active": []}
+    rng = np.random.default_rng(seed)
+    done, episode = 0, 0
+    while done < steps:
+        raw = uavtrack_v0.parallel_env(
+            scenario="random", n_uavs=N_UAVS, max_cycles=500, terminate_on_collision="agent"
+        )
+        env = CBFShield(raw) if shield else raw
+        env.reset(seed=seed + episode)
+        if shield:  # instance-level wrappers: the class itself has no timing code
+            env.certify = _timed(env.certify, times["certify"])
+            for tracker in env._trackers.values():
+                tracker.update = _timed(tracker.update, times["tracker"])
+        while env.agents and done < steps:
+            actions = {a: amplitude * rng.uniform(-1.0, 1.0, 4) for a in env.agents}
+            t0 = time.perf_counter()
+            _o, _r, _t, _tr, infos = env.step(actions)
+            times["step"].append(time.perf_counter() - t0)
+            if shield:
+                times["active"] += [float(i["shield"]["active"]) for i in infos.values()]
+            done += 1
+        env.close()
+        episode += 1
+    return {k: np.asarray(v) for k, v in times.items()}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--steps", type=int, default=2000, help="env steps per configuration")
+    ap.add_argument("--repeats", type=int, default=3, help="repeat each configuration")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--all-cores", action="store_true", help="do not pin to one core")
+    args = ap.parse_args()
+    if not args.all_cores and hasattr(os, "sched_setaffinity"):
+        os.sched_setaffinity(0, {min(os.sched_getaffinity(0))})
+
+    for label, amp in (("random actions", 1.0), ("small actions", 0.05)):
+        bare_t, shield_t, cert, trk, act = [], [], [], [], []
+        for r in range(args.repeats):
+            bare = run(False, amp, args.steps, args.seed + 1000 * r)
+            shielded = run(True, amp, args.steps, args.seed + 1000 * r)
+            bare_t.append(bare["step"].mean())  # throughput: total time / steps
+            shield_t.append(shielded["step"].mean())
+            cert.append(np.median(shielded["certify"]))
+            trk.append(np.median(shielded["tracker"]))
+            act.append(shielded["active"].mean())
+        b, s = np.median(bare_t), np.median(shield_t)
+        print(f"== n={N_UAVS}, random world, {label} ({args.repeats} x {args.steps} steps)")
+        print(f"  env steps/s   bare {1 / b:8.0f}   shielded {1 / s:8.0f}   ratio {b / s:.2f}")
+        print(f"  shield active on {np.median(act):.0%} of agent-steps")
+        print(
+            "  per agent-step (us): "
+            f"certify median {np.median(cert) * 1e6:6.1f}   "
+            f"tracker (UKF) median {np.median(trk) * 1e6:6.1f}   "
+            f"total overhead (mean) {(s - b) / N_UAVS * 1e6:6.1f}"
+        )
+        print(f"  certify median per repeat (us): {', '.join(f'{c * 1e6:.1f}' for c in cert)}")
+
+
+if __name__ == "__main__":
+    main()

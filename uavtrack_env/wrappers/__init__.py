@@ -1,0 +1,22 @@
+"""Wrappers: ``CBFShield`` (safety shield), ``SingleAgentView`` (a gymnasium.Env for one agent) and
+``SharedPolicyVecEnv`` (every agent of several env copies as one row of an SB3 VecEnv).
+
+``SharedPolicyVecEnv`` needs the ``train`` extra (SB3, torch) and is imported on first use.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from .shield import CBFShield
+from .single_agent import SingleAgentView
+
+__all__ = ["CBFShield", "SharedPolicyVecEnv", "SingleAgentView"]
+
+
+def __getattr__(name: str) -> Any:
+    if name == "SharedPolicyVecEnv":
+        from .sb3 import SharedPolicyVecEnv
+
+        return SharedPolicyVecEnv
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -1,0 +1,267 @@
+"""``CBFShield``: the expert's CBF-QP (47) as a safety shield around any policy's actions.
+
+Every step, each agent's proposed (normalised) action goes through `SafetyFilter.certify` with only
+what that UAV knows: its own pose (``info["own"]``), the positions its neighbours sent
+(``info["neighbours"]``), the known obstacle map (``env.layout``) and its own target estimate from
+an `OnboardTracker` (UKF, section II-E) fed with its ``info`` after every reset/step. It never reads
+``info["truth"]``. The safe action is handed to the wrapped env; ``info[agent]["shield"]`` says
+what happened.
+
+Why margins (`ShieldMargins`): the env counts ``d < R_s`` as a UAV-UAV collision and ``d > R_c`` as
+a broken link, while the barriers keep ``h >= 0`` only up to the QP's round-off (~1e-10), i.e.
+the closed loop can sit *at* R_s or R_c. The shield therefore certifies with ``R_s + r_s_margin``
+and ``R_c - r_c_margin`` (and ``D_s <= R_c``) and re-checks eq. (28) for the inflated R_s. The
+car is known only through the UKF: the shield uses a heading-free box around it (horizontal half
+extent = the car's half diagonal) inflated by ``target_margin`` plus ``target_sigmas`` standard
+deviations of the estimated position (capped at ``target_margin_max``). Obstacle and floor
+barriers already leave a gap between the UAV's sphere and the surface (``obstacle_clearance`` and
+``z_min`` vs ``uav_radius``); the shield refuses configurations where that gap is below
+``surface_gap``.
+
+Guarantees hold for the paper's single-integrator dynamics (eq. 3, ``dynamics.model =
+'integrator'``), with every agent shielded and messages not dropped; with the 'lag' model the
+shield is a best effort (a warning says so). Before a UAV has ever detected the car it has no
+estimate, so no car row (documented limitation).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import warnings
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from pettingzoo.utils.wrappers import BaseParallelWrapper
+
+from uavtrack_env.config import CBFConfig
+from uavtrack_env.env import UAVTrackEnv
+from uavtrack_env.estimation import UKFConfig
+from uavtrack_env.onboard import OnboardTracker, safety_context
+from uavtrack_env.safety import SafetyContext, SafetyFilter, ShieldOptions, ShieldReport
+from uavtrack_env.target import CAR_HALF_EXTENTS
+
+
+@dataclass(frozen=True)
+class ShieldMargins:
+    """Safety margins of the RL shield (not in the paper; see the module docstring)."""
+
+    r_s_margin: float = 0.05
+    """Added to R_s (eq. 20) when certifying, so round-off never lets d drop below the env's R_s."""
+    r_c_margin: float = 0.05
+    """Subtracted from R_c (eq. 29) when certifying (D_s is capped at the reduced R_c, eq. 27)."""
+    target_margin: float = 0.25
+    """Added (m) to the car's heading-free half extents: estimate error the shield tolerates."""
+    target_sigmas: float = 3.0
+    """Further inflation in standard deviations of the UKF's target-position estimate."""
+    target_margin_max: float = 2.0
+    """Cap (m) on the total inflation of the car box (long dropouts grow the covariance)."""
+    surface_gap: float = 0.1
+    """Required gap (m) between the UAV sphere and an obstacle/the ground at the barrier's edge:
+    ``obstacle_clearance - uav_radius`` and ``z_min - uav_radius`` must be at least this."""
+
+    def __post_init__(self) -> None:
+        for f in dataclasses.fields(self):
+            value = getattr(self, f.name)
+            if not (isinstance(value, int | float) and math.isfinite(value) and value >= 0):
+                raise ValueError(f"{f.name} must be a finite number >= 0, got {value!r}")
+        if self.target_margin_max < self.target_margin:
+            raise ValueError("target_margin_max must be >= target_margin")
+
+
+_MARGIN_NAMES = {f.name for f in dataclasses.fields(ShieldMargins)}
+_OPTION_NAMES = {f.name for f in dataclasses.fields(ShieldOptions)}
+
+
+def shield_cbf(base: CBFConfig, margins: ShieldMargins) -> CBFConfig:
+    """The CBF config the shield certifies with: R_s + margin, R_c - margin, D_s <= R_c.
+
+    Raises ValueError when the inflated R_s breaks eq. (28) or the ranges become inconsistent.
+    """
+    r_s = base.r_s + margins.r_s_margin
+    r_c = base.r_c - margins.r_c_margin
+    try:
+        return dataclasses.replace(base, r_s=r_s, r_c=r_c, d_s=min(base.d_s, r_c))
+    except ValueError as exc:
+        raise ValueError(
+            f"the shield certifies with R_s + {margins.r_s_margin} = {r_s} m and "
+            f"R_c - {margins.r_c_margin} = {r_c} m, which the CBF config does not allow: {exc}"
+        ) from exc
+
+
+class CBFShield(BaseParallelWrapper):
+    """PettingZoo ParallelEnv wrapper: every action passes the distributed CBF-QP (47) first.
+
+    Arguments (all keyword, all optional):
+
+    * ``cbf``: a `CBFConfig`, or a dict of its fields to override on ``env.config.cbf``;
+      its R_s/R_c may not be looser than the env's (the env's collision/link thresholds).
+    * ``solver``: QP backend of `SafetyFilter` (``'daqp-direct'``, ``'daqp'``, ``'proxqp'``).
+    * ``ukf``: a `UKFConfig` for the per-agent target trackers.
+    * fields of `ShieldOptions` (e.g. ``occlusion=False``) and of `ShieldMargins`.
+
+    Unknown names raise TypeError. Bad actions raise the env's own errors (its validation runs
+    first) and change nothing. ``info[agent]["shield"]`` holds ``active``, ``correction_norm``
+    (SI units, camera frame), ``status``, ``slack`` (m/s of relaxed soft rows), ``active_rows``,
+    ``hard_violation``, ``min_hard_h``, ``action`` (the normalised action sent to the env) and
+    ``has_target_estimate``. ``last_reports`` keeps the full `ShieldReport` of each agent.
+    """
+
+    def __init__(
+        self,
+        env: Any,
+        *,
+        cbf: CBFConfig | dict | None = None,
+        solver: str = "daqp-direct",
+        ukf: UKFConfig | None = None,
+        **config: Any,
+    ) -> None:
+        super().__init__(env)
+        raw = env.unwrapped
+        if not isinstance(raw, UAVTrackEnv):
+            raise TypeError(f"CBFShield wraps a UAVTrackEnv, got {type(raw).__name__}")
+        unknown = sorted(set(config) - _MARGIN_NAMES - _OPTION_NAMES)
+        if unknown:
+            raise TypeError(
+                f"unknown CBFShield argument(s) {unknown}; valid: cbf, solver, ukf, "
+                f"{sorted(_OPTION_NAMES)} (ShieldOptions), {sorted(_MARGIN_NAMES)} (ShieldMargins)"
+            )
+        env_cfg = raw.config
+        self.margins = ShieldMargins(**{k: v for k, v in config.items() if k in _MARGIN_NAMES})
+        base = self._base_cbf(env_cfg.cbf, cbf)
+        gap = self.margins.surface_gap
+        if base.obstacle_clearance - env_cfg.uav_radius < gap:
+            raise ValueError(
+                f"obstacle_clearance {base.obstacle_clearance} m leaves less than surface_gap "
+                f"{gap} m around the UAV's sphere (radius {env_cfg.uav_radius} m)"
+            )
+        if base.z_min - env_cfg.uav_radius < gap:
+            raise ValueError(
+                f"z_min {base.z_min} m leaves less than surface_gap {gap} m above the ground "
+                f"for the UAV's sphere (radius {env_cfg.uav_radius} m)"
+            )
+        self.cbf = shield_cbf(base, self.margins)
+        options = {k: v for k, v in config.items() if k in _OPTION_NAMES}
+        self.filter = SafetyFilter(self.cbf, env_cfg.limits, solver=solver, **options)
+        if env_cfg.dynamics.model != "integrator":
+            warnings.warn(
+                "CBFShield's guarantees assume the single-integrator dynamics of eq. (3); with "
+                f"dynamics.model={env_cfg.dynamics.model!r} the shield is a best effort",
+                stacklevel=2,
+            )
+        if env_cfg.comms.drop_prob > 0 or env_cfg.comms.r_c < self.cbf.r_c:
+            warnings.warn(
+                "CBFShield's guarantees assume every message within R_c arrives (comms.drop_prob "
+                f"= {env_cfg.comms.drop_prob}, comms.r_c = {env_cfg.comms.r_c} m vs the shield's "
+                f"R_c = {self.cbf.r_c} m): the distributed rows (23)-(34) need both UAVs' halves",
+                stacklevel=2,
+            )
+        self._raw = raw
+        self._scale = env_cfg.limits.scale
+        self._ids = {a: i for i, a in enumerate(raw.possible_agents)}
+        self._trackers = {a: OnboardTracker(env_cfg.camera, ukf) for a in raw.possible_agents}
+        self._infos: dict[str, dict] = {}
+        hx, hy, hz = (float(x) for x in CAR_HALF_EXTENTS)
+        self._car_half = np.array([math.hypot(hx, hy), math.hypot(hx, hy), hz])
+        self.last_reports: dict[str, ShieldReport] = {}
+
+    @staticmethod
+    def _base_cbf(env_cbf: CBFConfig, override: CBFConfig | dict | None) -> CBFConfig:
+        if override is None:
+            return env_cbf
+        if isinstance(override, dict):
+            valid = {f.name for f in dataclasses.fields(CBFConfig)}
+            bad = sorted(set(override) - valid)
+            if bad:
+                raise TypeError(f"unknown CBFConfig field(s) {bad}; valid: {sorted(valid)}")
+            base = dataclasses.replace(env_cbf, **override)
+        elif isinstance(override, CBFConfig):
+            base = override
+        else:
+            raise TypeError(f"cbf must be a CBFConfig or a dict, got {type(override).__name__}")
+        if base.r_s < env_cbf.r_s or base.r_c > env_cbf.r_c:
+            raise ValueError(
+                f"the shield's R_s = {base.r_s} / R_c = {base.r_c} are looser than the env's "
+                f"collision range {env_cbf.r_s} m / link range {env_cbf.r_c} m"
+            )
+        return base
+
+    # ------------------------------------------------------------------ API
+    def reset(
+        self, seed: int | None = None, options: dict | None = None
+    ) -> tuple[dict[str, np.ndarray], dict[str, dict]]:
+        obs, infos = self.env.reset(seed=seed, options=options)
+        for tracker in self._trackers.values():
+            tracker.reset()
+        self.last_reports = {}
+        self._observe(infos)
+        for info in infos.values():
+            info["shield"] = {
+                "active": False,
+                "correction_norm": 0.0,
+                "status": "reset",
+                "slack": 0.0,
+            }
+        return obs, infos
+
+    def step(self, actions: dict[str, Any]):
+        # The env's own validation: identical errors, raised before anything changes.
+        u, _ = self._raw._validate(actions)
+        safe, reports = {}, {}
+        for agent, action in actions.items():
+            u_safe, report = self.certify(agent, u[self._ids[agent]])
+            reports[agent] = report
+            # An unchanged action is passed through as given (bit-identical behaviour).
+            safe[agent] = np.clip(u_safe / self._scale, -1.0, 1.0) if report.active else action
+        obs, rewards, terms, truncs, infos = self.env.step(safe)
+        self._observe(infos)
+        self.last_reports = reports
+        for agent, info in infos.items():
+            rep = reports[agent]
+            info["shield"] = {
+                "active": rep.active,
+                "correction_norm": rep.correction_norm,
+                "status": rep.status,
+                "slack": rep.slack,
+                "active_rows": list(rep.active_rows),
+                "hard_violation": rep.hard_violation,
+                "min_hard_h": rep.min_hard_h,
+                "action": np.asarray(safe[agent], np.float64).copy(),
+                "has_target_estimate": self._trackers[agent].estimate is not None,
+            }
+        return obs, rewards, terms, truncs, infos
+
+    # -------------------------------------------------------------- shield
+    def certify(self, agent: str, u_nominal: np.ndarray) -> tuple[np.ndarray, ShieldReport]:
+        """Certify one agent's SI camera-frame command with what that UAV knows now."""
+        info = self._infos.get(agent)
+        if info is None:
+            raise RuntimeError(f"no observation of {agent!r} yet; call reset() first")
+        return self.filter.certify(u_nominal, self.context(agent))
+
+    def context(self, agent: str) -> SafetyContext:
+        """The `SafetyContext` of ``agent`` from its latest info and target estimate."""
+        info = self._infos[agent]
+        est = self._trackers[agent].estimate
+        ctx = safety_context(
+            info, est, self._raw.layout.obstacle_centers, self._raw.layout.obstacle_half_extents
+        )
+        # Fields added to the validated context; set in place (like SafetyContext's own
+        # __post_init__) since a dataclasses.replace would re-validate every array (~15 us).
+        put = object.__setattr__
+        put(ctx, "neighbour_ids", tuple(self._ids[a] for a in info["neighbours"]))
+        if est is not None:
+            # Heading-free car box, inflated for the estimate's uncertainty (module docstring).
+            sigma = math.sqrt(max(float(np.max(np.diag(est.covariance)[4:7])), 0.0))
+            m = self.margins
+            pad = min(m.target_margin + m.target_sigmas * sigma, m.target_margin_max)
+            put(ctx, "target_half_extents", self._car_half + pad)
+            put(ctx, "target_heading", 0.0)
+        return ctx
+
+    def _observe(self, infos: dict[str, dict]) -> None:
+        """Feed every live agent's tracker with its new info and keep the info for certify."""
+        for agent, info in infos.items():
+            self._trackers[agent].update(info)
+        self._infos = infos
