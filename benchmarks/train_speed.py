@@ -1,0 +1,98 @@
+"""Training throughput of shared-parameter PPO, with and without the CBF shield.
+
+    PYTHONPATH=. python benchmarks/train_speed.py [--timesteps 3072] [--repeats 3] [--n-envs 4]
+
+Per configuration, the median over repeats of: agent-steps/s of ``PPO.learn`` (rollouts + updates,
+SB3 defaults of train.ppo but n_epochs as given) and of stepping the SharedPolicyVecEnv alone with
+random actions (collection only), plus the shield's slowdown ratio. One torch thread; random
+worlds, integrator dynamics, 1200-step episodes (as train.ppo).
+"""
+
+from __future__ import annotations
+
+import argparse
+import platform
+import statistics
+import time
+import warnings
+
+import numpy as np
+
+from train.ppo import make_args, make_vec_env
+
+
+def vec_rate(shield: bool, steps: int, n_envs: int, seed: int) -> float:
+    """Agent-steps/s of the VecEnv alone (random actions)."""
+    args = make_args(out="/tmp/unused", shield=shield, n_envs=n_envs, seed=seed, normalize=False)
+    vec = make_vec_env(args)
+    vec.reset()
+    rng = np.random.default_rng(seed)
+    vector_steps = max(1, steps // vec.num_envs)
+    t0 = time.perf_counter()
+    for _ in range(vector_steps):
+        vec.step(rng.uniform(-0.3, 0.3, (vec.num_envs, 4)).astype(np.float32))
+    rate = vector_steps * vec.num_envs / (time.perf_counter() - t0)
+    vec.close()
+    return rate
+
+
+def learn_rate(shield: bool, steps: int, n_envs: int, n_epochs: int, seed: int) -> float:
+    """Agent-steps/s of PPO.learn (collection and updates)."""
+    import torch
+    from stable_baselines3 import PPO
+
+    torch.set_num_threads(1)
+    args = make_args(out="/tmp/unused", shield=shield, n_envs=n_envs, seed=seed)
+    vec = make_vec_env(args)
+    model = PPO(
+        "MlpPolicy",
+        vec,
+        n_steps=args.n_steps,
+        batch_size=args.batch_size,
+        n_epochs=n_epochs,
+        policy_kwargs={"net_arch": {"pi": [128, 128], "vf": [128, 128]}},
+        seed=seed,
+        device="cpu",
+    )
+    t0 = time.perf_counter()
+    model.learn(total_timesteps=steps)
+    rate = model.num_timesteps / (time.perf_counter() - t0)
+    vec.close()
+    return rate
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__)
+    ap.add_argument("--timesteps", type=int, default=3072, help="agent-steps per repeat")
+    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--n-envs", type=int, default=4, help="env copies (rows = copies x 3)")
+    ap.add_argument("--n-epochs", type=int, default=10)
+    args = ap.parse_args()
+    warnings.simplefilter("ignore")
+    print(
+        f"machine: {platform.processor() or platform.machine()}, python "
+        f"{platform.python_version()}; {args.n_envs} copies x 3 UAVs, "
+        f"{args.timesteps} agent-steps, median of {args.repeats}"
+    )
+    res = {}
+    for shield in (False, True):
+        res[shield] = (
+            statistics.median(
+                vec_rate(shield, args.timesteps, args.n_envs, s) for s in range(args.repeats)
+            ),
+            statistics.median(
+                learn_rate(shield, args.timesteps, args.n_envs, args.n_epochs, s)
+                for s in range(args.repeats)
+            ),
+        )
+    print(f"{'config':<14} {'VecEnv agent-steps/s':>21} {'PPO.learn agent-steps/s':>24}")
+    for shield, (v, lr) in res.items():
+        print(f"{'PPO + shield' if shield else 'PPO':<14} {v:>21.0f} {lr:>24.0f}")
+    (v0, l0), (v1, l1) = res[False], res[True]
+    print(f"{'shield cost':<14} {v0 / v1:>20.2f}x {l0 / l1:>23.2f}x  (slowdown)")
+    us = 1e6 * (1 / v1 - 1 / v0)
+    print(f"shield overhead per agent-step (VecEnv): {us:.0f} us (UKF + CBF-QP)")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,337 @@
+"""Shared-parameter PPO (Stable-Baselines3, torch, CPU) on random worlds, shielded or not.
+
+    python -m train.ppo --shield --timesteps 200000 --seed 0 --out runs/ppo-shield
+    python -m train.ppo --no-shield --timesteps 200000 --seed 0 --out runs/ppo
+    python -m train.ppo --timesteps 100000 --resume runs/ppo-shield     # 100k more steps
+
+One policy drives every UAV (each agent of each env copy is one row of
+`uavtrack_env.wrappers.sb3.SharedPolicyVecEnv`); with ``--shield`` every action passes the
+expert's CBF-QP (`CBFShield`) in training and in evaluation. Writes into DIR: ``tb/``
+(TensorBoard), ``checkpoints/`` (every ``--checkpoint-freq`` agent-steps, with the VecNormalize
+statistics), ``model.zip`` + ``vecnormalize.pkl`` (final), ``args.json`` and ``metrics.json``
+(a list of evaluation episodes in the schema of ``baselines/evaluate.py`` plus
+``violations_per_1000_steps`` and ``shield_intervention_rate``). Step counts are agent-steps
+(SB3's ``num_timesteps``: rows x vector steps).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import re
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from baselines.compare import (
+    SB3Policy,
+    env_args,
+    eval_worlds,
+    make_eval_env,
+    run_policy_episode,
+)
+from baselines.evaluate import table
+from uavtrack_env.config import DT
+
+ENV_FIELDS = ("shield", "n_uavs", "max_cycles", "terminate_on_collision", "dynamics", "n_envs")
+"""Arguments that define the training env; ``--resume`` takes them from the run's args.json."""
+
+
+@dataclass
+class Args:
+    """Command-line arguments (``--name-with-dashes``); each field's help is its metadata."""
+
+    shield: bool = field(default=True, metadata={"help": "pass every action through CBFShield"})
+    timesteps: int = field(default=200_000, metadata={"help": "agent-steps to train (this call)"})
+    seed: int = field(default=0, metadata={"help": "seed of torch, numpy and the env copies"})
+    out: Path | None = field(default=None, metadata={"help": "output dir (default: --resume)"})
+    resume: Path | None = field(
+        default=None, metadata={"help": "continue the run in DIR from its last checkpoint"}
+    )
+    n_envs: int = field(default=4, metadata={"help": "env copies (rows = copies x n_uavs)"})
+    n_uavs: int = field(default=3, metadata={"help": "UAVs per random world"})
+    max_cycles: int = field(default=1200, metadata={"help": "training episode length (80 Hz)"})
+    terminate_on_collision: str = field(
+        default="all", metadata={"help": "'all' or 'agent' (SharedPolicyVecEnv pads dead rows)"}
+    )
+    dynamics: str = field(
+        default="integrator", metadata={"help": "'integrator' (eq. 3, shield exact) or 'lag'"}
+    )
+    n_steps: int = field(default=256, metadata={"help": "PPO rollout length per row"})
+    batch_size: int = field(default=512, metadata={"help": "PPO minibatch size"})
+    n_epochs: int = field(default=10, metadata={"help": "PPO epochs per rollout"})
+    learning_rate: float = field(default=3e-4, metadata={"help": "Adam learning rate"})
+    gamma: float = field(default=0.99, metadata={"help": "discount"})
+    gae_lambda: float = field(default=0.95, metadata={"help": "GAE lambda"})
+    clip_range: float = field(default=0.2, metadata={"help": "PPO clip range"})
+    ent_coef: float = field(default=0.0, metadata={"help": "entropy bonus"})
+    net_arch: str = field(default="128,128", metadata={"help": "hidden sizes of pi and vf"})
+    normalize: bool = field(
+        default=True, metadata={"help": "VecNormalize observations and rewards"}
+    )
+    checkpoint_freq: int = field(default=50_000, metadata={"help": "agent-steps between saves"})
+    eval_scenarios: str = field(
+        default="A", metadata={"help": "paper scenarios to evaluate on, e.g. 'A' or 'ABC'"}
+    )
+    eval_seeds: int = field(default=3, metadata={"help": "seeded random worlds to evaluate on"})
+    eval_duration: float = field(default=60.0, metadata={"help": "evaluation episode length (s)"})
+    threads: int = field(default=1, metadata={"help": "torch CPU threads"})
+    progress: bool = field(default=True, metadata={"help": "show a progress bar"})
+
+
+def parse_args(argv: list[str] | None = None) -> Args:
+    """argparse from the `Args` dataclass; booleans get ``--x/--no-x``."""
+    ap = argparse.ArgumentParser(
+        prog="python -m train.ppo",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    for f in dataclasses.fields(Args):
+        flag = "--" + f.name.replace("_", "-")
+        help_ = f"{f.metadata['help']} (default: {f.default})"
+        if f.type in (bool, "bool"):
+            ap.add_argument(flag, action=argparse.BooleanOptionalAction, default=None, help=help_)
+        else:
+            kind = {"int": int, "float": float, "str": str}.get(str(f.type), Path)
+            ap.add_argument(flag, type=kind, default=None, help=help_)
+    ns = ap.parse_args(argv)
+    given = {k: v for k, v in vars(ns).items() if v is not None}
+    return make_args(**given)
+
+
+def make_args(**given: Any) -> Args:
+    """`Args` with checks; with ``resume``, the env-defining fields come from its args.json."""
+    if given.get("resume") is not None:
+        saved = json.loads((Path(given["resume"]) / "args.json").read_text())
+        for k in ENV_FIELDS:
+            given[k] = saved[k]
+        given.setdefault("out", Path(given["resume"]))
+    args = Args(**given)
+    if args.out is None:
+        raise ValueError("--out DIR is required (or --resume DIR)")
+    args.out = Path(args.out)
+    for name in ("timesteps", "n_envs", "n_uavs", "max_cycles", "n_steps", "batch_size"):
+        if int(getattr(args, name)) < 1:
+            raise ValueError(f"--{name.replace('_', '-')} must be >= 1")
+    if args.terminate_on_collision not in ("all", "agent"):
+        raise ValueError("--terminate-on-collision must be 'all' or 'agent'")
+    if args.dynamics not in ("integrator", "lag"):
+        raise ValueError("--dynamics must be 'integrator' or 'lag'")
+    if set(args.eval_scenarios) - set("ABC"):
+        raise ValueError(f"--eval-scenarios takes letters of 'ABC', got {args.eval_scenarios!r}")
+    if not args.eval_duration > 0:
+        raise ValueError("--eval-duration must be > 0 s")
+    return args
+
+
+# ------------------------------------------------------------------------ env
+def env_fn(args: Args):
+    """Factory of one training copy: a random world, shielded if asked."""
+    from uavtrack_env import uavtrack_v0
+
+    def make():
+        env = uavtrack_v0.parallel_env(
+            scenario="random",
+            n_uavs=args.n_uavs,
+            max_cycles=args.max_cycles,
+            terminate_on_collision=args.terminate_on_collision,
+            dynamics={"model": args.dynamics},
+        )
+        if args.shield:
+            import warnings
+
+            from uavtrack_env.wrappers import CBFShield
+
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")  # the 'lag' best-effort warning, once per copy
+                env = CBFShield(env)
+        return env
+
+    return make
+
+
+def make_vec_env(args: Args):
+    """SharedPolicyVecEnv -> AgentVecMonitor (-> VecNormalize), seeded."""
+    from stable_baselines3.common.vec_env import VecNormalize
+
+    from uavtrack_env.wrappers.sb3 import AgentVecMonitor, SharedPolicyVecEnv
+
+    vec = AgentVecMonitor(SharedPolicyVecEnv(env_fn(args), n_copies=args.n_envs))
+    if args.normalize:
+        vec = VecNormalize(vec, gamma=args.gamma)
+    vec.seed(args.seed)
+    return vec
+
+
+# ---------------------------------------------------------------- checkpoints
+_CKPT = re.compile(r"ppo_(\d+)_steps\.zip$")
+
+
+def last_checkpoint(run_dir: Path) -> tuple[Path, Path | None]:
+    """(model zip, VecNormalize pickle or None) of the highest step count in DIR/checkpoints."""
+    ckpts = [
+        (int(m.group(1)), p)
+        for p in (Path(run_dir) / "checkpoints").glob("ppo_*_steps.zip")
+        if (m := _CKPT.search(p.name))
+    ]
+    if not ckpts:
+        raise ValueError(f"no checkpoint ppo_<steps>_steps.zip in {run_dir}/checkpoints")
+    steps, path = max(ckpts)
+    norm = path.with_name(f"ppo_vecnormalize_{steps}_steps.pkl")
+    return path, norm if norm.exists() else None
+
+
+def _progress_callback(enabled: bool):
+    """SB3's rich progress bar if rich is installed, else a tqdm callback (None if disabled)."""
+    from stable_baselines3.common.callbacks import BaseCallback
+
+    if not enabled:
+        return None, False
+    try:
+        import rich  # noqa: F401
+
+        return None, True
+    except ImportError:
+        pass
+    from tqdm import tqdm
+
+    class TqdmCallback(BaseCallback):
+        def _on_training_start(self) -> None:
+            total = self.locals["total_timesteps"]
+            self.bar = tqdm(total=total, initial=self.model.num_timesteps, unit="step")
+
+        def _on_step(self) -> bool:
+            self.bar.update(self.model.num_timesteps - self.bar.n)
+            return True
+
+        def _on_training_end(self) -> None:
+            self.bar.close()
+
+    return TqdmCallback(), False
+
+
+# ---------------------------------------------------------------------- train
+def train(args: Args):
+    """Train (or resume) and save; returns the model and its VecEnv."""
+    import torch
+    from stable_baselines3 import PPO
+    from stable_baselines3.common.callbacks import CheckpointCallback
+    from stable_baselines3.common.vec_env import VecNormalize
+
+    torch.set_num_threads(args.threads)
+    out = args.out
+    ckdir = out / "checkpoints"
+    ckdir.mkdir(parents=True, exist_ok=True)
+    vec = make_vec_env(args)
+    if args.resume is not None:
+        path, norm = last_checkpoint(args.resume)
+        if isinstance(vec, VecNormalize) and norm is not None:
+            vec = VecNormalize.load(str(norm), vec.venv)
+            vec.seed(args.seed)
+        model = PPO.load(path, env=vec, device="cpu", tensorboard_log=str(out / "tb"))
+        print(f"resuming {path} at {model.num_timesteps} agent-steps")
+    else:
+        hidden = [int(h) for h in args.net_arch.split(",") if h]
+        model = PPO(
+            "MlpPolicy",
+            vec,
+            n_steps=args.n_steps,
+            batch_size=args.batch_size,
+            n_epochs=args.n_epochs,
+            learning_rate=args.learning_rate,
+            gamma=args.gamma,
+            gae_lambda=args.gae_lambda,
+            clip_range=args.clip_range,
+            ent_coef=args.ent_coef,
+            policy_kwargs={"net_arch": {"pi": hidden, "vf": hidden}},
+            tensorboard_log=str(out / "tb"),
+            seed=args.seed,
+            device="cpu",
+            verbose=0,
+        )
+    ckpt = CheckpointCallback(
+        save_freq=max(1, args.checkpoint_freq // vec.num_envs),
+        save_path=str(ckdir),
+        name_prefix="ppo",
+        save_vecnormalize=True,
+    )
+    bar, rich_bar = _progress_callback(args.progress)
+    t0 = time.perf_counter()
+    start = model.num_timesteps
+    model.learn(
+        total_timesteps=args.timesteps,
+        callback=[c for c in (ckpt, bar) if c is not None],
+        reset_num_timesteps=args.resume is None,
+        progress_bar=rich_bar,
+        tb_log_name="PPO",
+    )
+    elapsed = time.perf_counter() - t0
+    # final save, also as a checkpoint so that --resume continues from the end
+    model.save(out / "model.zip")
+    model.save(ckdir / f"ppo_{model.num_timesteps}_steps.zip")
+    if isinstance(vec, VecNormalize):
+        vec.save(str(out / "vecnormalize.pkl"))
+        vec.save(str(ckdir / f"ppo_vecnormalize_{model.num_timesteps}_steps.pkl"))
+    saved = {k: (str(v) if isinstance(v, Path) else v) for k, v in dataclasses.asdict(args).items()}
+    saved.update(
+        num_timesteps=int(model.num_timesteps),
+        this_call_timesteps=int(model.num_timesteps - start),
+        train_seconds=elapsed,
+        agent_steps_per_s=(model.num_timesteps - start) / elapsed,
+    )
+    (out / "args.json").write_text(json.dumps(saved, indent=2))
+    return model, vec
+
+
+def evaluate_model(model, vec, args: Args) -> list[dict]:
+    """Deterministic policy on the paper's scenarios and seeded random worlds (shielded if
+    trained shielded) -> one metrics dict per episode, also written to DIR/metrics.json."""
+    from stable_baselines3.common.vec_env import VecNormalize
+
+    normalizer = vec if isinstance(vec, VecNormalize) else None
+    if normalizer is not None:
+        normalizer.training = False
+    policy = SB3Policy(model, normalizer)
+    steps = max(1, round(args.eval_duration / DT))
+    eargs = env_args(args.dynamics)
+    label = "PPO + shield" if args.shield else "PPO"
+    runs = []
+    for scenario, init, seed in eval_worlds(list(args.eval_scenarios), args.eval_seeds):
+        extra = {"n_uavs": args.n_uavs} if scenario == "random" else {}
+        env = make_eval_env(scenario, init, steps, eargs, args.shield, **extra)
+        m = run_policy_episode(
+            env, policy, seed=seed, steps=steps, label=label, dynamics=args.dynamics
+        )
+        m["timesteps"] = int(model.num_timesteps)
+        runs.append(m)
+        env.close()
+    (args.out / "metrics.json").write_text(json.dumps(runs, indent=2))
+    return runs
+
+
+def main(argv: list[str] | None = None) -> list[dict]:
+    args = parse_args(argv)
+    model, vec = train(args)
+    runs = evaluate_model(model, vec, args)
+    vec.close()
+    print(f"trained to {model.num_timesteps} agent-steps; evaluation ({args.eval_duration:g} s):")
+    print(table(runs))
+    for m in runs:
+        v = m["violations_per_1000_steps"]
+        rate = m["shield_intervention_rate"]
+        print(
+            f"{m['scenario']}{m['init']} seed {m['seed']}: violations/1000 agent-steps "
+            + ", ".join(f"{k} {x:.1f}" for k, x in v.items())
+            + ("" if rate is None else f"; shield active {100 * rate:.1f} %")
+        )
+    print(f"\nwrote {args.out}/ (model.zip, checkpoints/, tb/, metrics.json)")
+    return runs
+
+
+if __name__ == "__main__":
+    np.set_printoptions(precision=3)
+    main()
