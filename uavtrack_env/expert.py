@@ -18,6 +18,7 @@ from .estimation import UKFConfig
 from .geometry import world_to_cam_vec
 from .onboard import OnboardTracker, safety_context
 from .safety import SafetyFilter, ShieldReport
+from .safety.margins import ShieldMargins, shield_cbf
 
 
 @dataclass
@@ -60,7 +61,9 @@ class ExpertPolicy:
         self.obstacle_half_extents = np.asarray(obstacle_half_extents, float).reshape(-1, 3)
         if qp_solver is not None:
             shield_options["solver"] = qp_solver
-        self.shield = SafetyFilter(cbf or env_config.cbf, env_config.limits, **shield_options)
+        # Certify with the RL shield's margins (R_s + 5 cm, R_c - 5 cm): the env counts d < R_s.
+        cbf = shield_cbf(cbf or env_config.cbf, ShieldMargins())
+        self.shield = SafetyFilter(cbf, env_config.limits, **shield_options)
         nmpc_cfg = nmpc or NMPCConfig()
         self.agents: dict[str, AgentState] = {
             a: AgentState(

@@ -45,6 +45,8 @@ class NMPCOptions:
     """Cap on |eps_k| per feature (not in the paper): a UKF jump must not move s_d far."""
     slack_weight: float = 1000.0
     """L1 penalty on Table I bound violations (exact penalty; not in the paper)."""
+    slack_hessian: float = 1.0
+    """Curvature added on the slacks in the Gauss-Newton SQP Hessian (step only, not the cost)."""
     hessian: Literal["gauss-newton", "exact"] = "gauss-newton"
     """SQP/RTI Hessian: the constant Hessian of cost (18) ('gauss-newton') or the exact one."""
     qpsol: str = "qrqp"
@@ -55,6 +57,8 @@ class NMPCOptions:
     """Expand the MX graph to SX (faster evaluation)."""
     jit: bool = False
     """JIT-compile the NLP functions with the system C compiler (slower build)."""
+    rescue_with_ipopt: bool = True
+    """If 'sqp'/'rti' fails, re-solve the same problem with Ipopt before falling back."""
     max_fallback_steps: int = 10
     """Consecutive failures served from the shifted previous plan before hovering."""
 
@@ -85,8 +89,12 @@ class NMPCResult:
     solve_time_s: float
     predicted_s: np.ndarray
     """Predicted features (N_p+1, 4), psi relative to the reference (psi* +- pi)."""
+    predicted_u: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)))
+    """Planned inputs (N_p, 4) of the plan that ``u`` comes from."""
     solver_status: str = ""
     """Raw solver status, also on a fallback."""
+    solver_used: str = ""
+    """'ipopt' or 'sqpmethod': cold starts always use Ipopt."""
     eps: np.ndarray = field(default_factory=lambda: np.zeros(4))
     """Error signal eps_k of eq. (16) used in this solve."""
 
@@ -152,17 +160,17 @@ class NMPC:
     # ------------------------------------------------------------------ build
     def _build(self) -> None:
         N, cfg, opt = self.N, self.cfg, self.options
-        # Stage-wise decision vector: x_0, u_0, x_1, sig_1, u_1, ..., x_N, sig_N.
+        # Stage-wise decision vector: x_0, u_0, x_1, u_1, sig_1, ..., x_N, sig_N.
         names, sizes = [], []
         for n in range(N + 1):
             names.append(("x", n))
             sizes.append(4)
-            if n >= 1:
-                names.append(("sig", n))
-                sizes.append(3)
             if n < N:
                 names.append(("u", n))
                 sizes.append(4)
+            if n >= 1:
+                names.append(("sig", n))
+                sizes.append(3)
         offsets = np.concatenate([[0], np.cumsum(sizes)])
         index = {key: np.arange(offsets[i], offsets[i + 1]) for i, key in enumerate(names)}
         nw = int(offsets[-1])
@@ -235,21 +243,24 @@ class NMPC:
         self._shift_g = shift_g
 
         nlp = {"x": w, "p": p, "f": cost, "g": g}
+        self._nlp = nlp
         common: dict = {"print_time": False, "expand": opt.expand, "error_on_fail": False}
         if opt.jit:
             common.update(jit=True, compiler="shell", jit_options={"flags": ["-O1"]})
         solver = self.cfg.solver
+        ipopt_opts = {
+            **common,
+            "ipopt.print_level": 0,
+            "ipopt.sb": "yes",
+            "ipopt.tol": opt.tol,
+            "ipopt.max_iter": max(cfg.max_iter, 100),
+        }
+        # Cold starts (first step, after a hover fallback) go to Ipopt: an active-set QP
+        # from a poor guess can take hundreds of ms, the interior point ~10 ms.
+        self._cold_solver = ca.nlpsol("nmpc_cold", "ipopt", nlp, ipopt_opts)
         if solver == "ipopt":
             plug = "ipopt"
-            sopts = {
-                **common,
-                "ipopt.print_level": 0,
-                "ipopt.sb": "yes",
-                "ipopt.tol": opt.tol,
-                "ipopt.max_iter": max(cfg.max_iter, 100),
-                "ipopt.warm_start_init_point": "yes",
-                "ipopt.mu_init": 1e-3,
-            }
+            sopts = {**ipopt_opts, "ipopt.warm_start_init_point": "yes", "ipopt.mu_init": 1e-3}
         else:
             plug = "sqpmethod"
             sopts = {
@@ -268,6 +279,7 @@ class NMPC:
             else:
                 sopts["convexify_strategy"] = "regularize"
         self._solver = ca.nlpsol("nmpc", plug, nlp, sopts)
+        self._solver_plugin = plug
         self._lbx_dm, self._ubx_dm = ca.DM(lbx), ca.DM(ubx)
         self._lbg_dm, self._ubg_dm = ca.DM(self._lbg), ca.DM(self._ubg)
 
@@ -275,7 +287,7 @@ class NMPC:
     def _qp_options(qpsol: str) -> dict:
         base: dict = {"error_on_fail": False}
         if qpsol == "qrqp":
-            base.update(print_iter=False, print_header=False, print_info=False)
+            base.update(print_iter=False, print_header=False, print_info=False, max_iter=200)
         elif qpsol in ("osqp", "proxqp", "daqp", "hpipm", "qpoases"):
             base["print_time"] = False
             if qpsol == "qpoases":
@@ -284,13 +296,18 @@ class NMPC:
                 base["osqp"] = {"verbose": False}
         return base
 
-    @staticmethod
-    def _gauss_newton_hessian(nlp: dict) -> ca.Function:
-        """Hessian of cost (18) only: constant, positive semidefinite, convex QPs."""
+    def _gauss_newton_hessian(self, nlp: dict) -> ca.Function:
+        """Hessian of cost (18) only, plus a small curvature on the L1 slacks.
+
+        Both only change the SQP step, not the KKT point it converges to; the slack term keeps
+        the QPs strictly convex (an active-set QP stalls on the LP-like slack directions).
+        """
         w, p = nlp["x"], nlp["p"]
         lam_f = ca.MX.sym("lam_f")
         lam_g = ca.MX.sym("lam_g", nlp["g"].shape[0])
-        H = ca.triu(lam_f * ca.hessian(nlp["f"], w)[0])
+        reg = np.zeros(self._nw)
+        reg[self._isig] = self.options.slack_hessian
+        H = ca.triu(lam_f * ca.hessian(nlp["f"], w)[0] + ca.diag(ca.DM(reg)))
         return ca.Function(
             "gn_hess", [w, p, lam_f, lam_g], [H], ["x", "p", "lam_f", "lam_g"], ["hess"]
         ).expand()
@@ -352,9 +369,11 @@ class NMPC:
         s_d = self.reference - eps
         p = np.concatenate([s_rel, s_d, vq, aq])
 
+        solver = self._solver
         if self._w is None:
             w0 = self._cold_start(s_rel, vq, aq)
             args = {"x0": w0}
+            solver = self._cold_solver
         else:
             w0 = self._w[self._shift_w]
             w0[self._ix[0]] = s_rel
@@ -365,33 +384,29 @@ class NMPC:
             }
         args.update(p=p, lbx=self._lbx_dm, ubx=self._ubx_dm, lbg=self._lbg_dm, ubg=self._ubg_dm)
 
-        status, iters, ok = "exception", 0, False
-        try:
-            sol = self._solver.call(args)
-            stats = self._solver.stats()
-            status = str(stats.get("return_status", "unknown"))
-            iters = int(stats.get("iter_count", 0))
-            ok = bool(stats.get("success", False))
-            if (
-                self.cfg.solver == "rti"
-                and stats.get("unified_return_status") == "SOLVER_RET_LIMITED"
-            ):
-                ok = True  # one SQP iteration is the point of RTI
-            w_opt = np.asarray(sol["x"]).ravel()
-            ok = ok and bool(np.all(np.isfinite(w_opt)))
-        except RuntimeError as err:  # a plugin raising despite error_on_fail=False
-            status = f"exception: {err}"
+        ok, sol, status, iters = self._call(solver, args)
+        used = "ipopt" if solver is self._cold_solver else self._solver_plugin
+        if not ok and solver is not self._cold_solver and self.options.rescue_with_ipopt:
+            ok, sol, status, more = self._call(self._cold_solver, args)
+            iters += more
+            used = f"{used}+ipopt"
 
         if ok:
+            w_opt = np.asarray(sol["x"]).ravel()
             self._w = w_opt
             self._lam_g = np.asarray(sol["lam_g"]).ravel()
             self._lam_x = np.asarray(sol["lam_x"]).ravel()
+            if used != self._solver_plugin and self._solver_plugin != "ipopt":
+                # Ipopt's inactive multipliers are tiny but nonzero; an active-set QP would
+                # read them as an all-active guess and spend hundreds of iterations dropping them.
+                self._lam_g[np.abs(self._lam_g) < 1e-5] = 0.0
+                self._lam_x[np.abs(self._lam_x) < 1e-5] = 0.0
             self._fallback_count = 0
-            X = w_opt[self._ix]
+            X, Uplan = w_opt[self._ix], w_opt[self._iu]
             u = np.clip(w_opt[self._iu[0]], -self.limits.scale, self.limits.scale)
             result_status = status
         else:
-            u, X, result_status = self._fallback(s_rel, vq)
+            u, X, Uplan, result_status = self._fallback(s_rel, vq)
         self._s_pred = self.predict_one_step(s_rel, u, vq) if self.options.error_signal else None
         self._last = (s_rel, vq)
         return NMPCResult(
@@ -401,9 +416,26 @@ class NMPC:
             iterations=iters,
             solve_time_s=time.perf_counter() - t0,
             predicted_s=X,
+            predicted_u=Uplan,
             solver_status=status,
+            solver_used=used,
             eps=eps,
         )
+
+    def _call(self, solver, args: dict) -> tuple[bool, dict | None, str, int]:
+        """Run one nlpsol; success flag, solution, return status, iterations."""
+        try:
+            sol = solver.call(args)
+            stats = solver.stats()
+        except RuntimeError as err:  # a plugin raising despite error_on_fail=False
+            return False, None, f"exception: {err}", 0
+        status = str(stats.get("return_status", "unknown"))
+        ok = bool(stats.get("success", False))
+        if solver is self._solver and self.cfg.solver == "rti":
+            # one SQP iteration is the point of RTI: an iteration limit is its normal exit
+            ok = ok or stats.get("unified_return_status") == "SOLVER_RET_LIMITED"
+        ok = ok and bool(np.all(np.isfinite(np.asarray(sol["x"]))))
+        return ok, sol, status, int(stats.get("iter_count", 0))
 
     def _cold_start(self, s_rel: np.ndarray, vq: np.ndarray, aq: np.ndarray) -> np.ndarray:
         """Initial guess: move with the target (u = u_d), features stay where they are."""
@@ -417,7 +449,7 @@ class NMPC:
         w0[self._isig] = np.maximum(np.maximum(lo - s_rel[:3], s_rel[:3] - hi), 0.0)
         return w0
 
-    def _fallback(self, s_rel: np.ndarray, vq: np.ndarray) -> tuple[np.ndarray, np.ndarray, str]:
+    def _fallback(self, s_rel: np.ndarray, vq: np.ndarray) -> tuple[np.ndarray, ...]:
         """Defined action on solver failure: shifted previous plan, else hover with the target."""
         umax = self.limits.scale
         if self._w is not None and self._fallback_count < self.options.max_fallback_steps:
@@ -425,7 +457,7 @@ class NMPC:
             self._lam_g = self._lam_g[self._shift_g]
             self._fallback_count += 1
             u = np.clip(self._w[self._iu[0]], -umax, umax)
-            return u, self._w[self._ix], "fallback-shifted"
+            return u, self._w[self._ix], self._w[self._iu], "fallback-shifted"
         self.reset()
         u = np.clip(np.append(vq, 0.0), -umax, umax)
-        return u, np.tile(s_rel, (self.N + 1, 1)), "fallback-hover"
+        return u, np.tile(s_rel, (self.N + 1, 1)), np.tile(u, (self.N, 1)), "fallback-hover"

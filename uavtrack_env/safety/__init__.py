@@ -14,6 +14,7 @@ from uavtrack_env.safety.cbf import (
     h_occlusion,
     h_pair,
 )
+from uavtrack_env.safety.margins import ShieldMargins, shield_cbf
 from uavtrack_env.safety.shield import (
     SOLVERS,
     SafetyFilter,
@@ -28,6 +29,7 @@ __all__ = [
     "CBFRows",
     "SafetyContext",
     "SafetyFilter",
+    "ShieldMargins",
     "ShieldOptions",
     "ShieldReport",
     "build_rows",
@@ -36,4 +38,5 @@ __all__ = [
     "h_connect",
     "h_occlusion",
     "h_pair",
+    "shield_cbf",
 ]

@@ -1,0 +1,68 @@
+"""Median time of each expert stage and of the whole 3-UAV expert step, scenario A.
+
+    python benchmarks/expert_speed.py [--steps 800] [--solvers sqp ipopt]
+
+Runs the closed loop (lag dynamics, detector noise on) and prints per-UAV medians of the UKF,
+NMPC and CBF-QP, the whole expert step for 3 UAVs, the env step, and the real-time factor at 80 Hz
+of expert alone and of expert + env.
+"""
+
+from __future__ import annotations
+
+import argparse
+import platform
+import statistics
+import time
+
+from uavtrack_env import uavtrack_v0
+from uavtrack_env.config import NMPCConfig
+from uavtrack_env.expert import ExpertPolicy
+
+
+def run(solver: str, steps: int) -> dict[str, float]:
+    env = uavtrack_v0.parallel_env(scenario="A", max_cycles=steps, dynamics={"model": "lag"})
+    obs, infos = env.reset(seed=0)
+    expert = ExpertPolicy.from_env(env, nmpc=NMPCConfig(solver=solver))
+    whole, env_t = [], []
+    while env.agents:
+        t0 = time.perf_counter()
+        actions = expert(obs, infos)
+        t1 = time.perf_counter()
+        obs, _, _, _, infos = env.step(actions)
+        whole.append(t1 - t0)
+        env_t.append(time.perf_counter() - t1)
+    env.close()
+    med = {k: 1e3 * statistics.median(v) for k, v in expert.timings.items()}
+    med["expert_step_3uav"] = 1e3 * statistics.median(whole)
+    med["env_step"] = 1e3 * statistics.median(env_t)
+    return med
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__)
+    ap.add_argument("--steps", type=int, default=800)
+    ap.add_argument("--solvers", nargs="+", default=["sqp", "ipopt"])
+    args = ap.parse_args()
+    print(f"machine: {platform.machine()}, python {platform.python_version()}, {args.steps} steps")
+    period = 1e3 / 80.0
+    rows = {s: run(s, args.steps) for s in args.solvers}
+    cols = ["ukf", "nmpc", "qp", "expert_step_3uav", "env_step"]
+    print(
+        f"{'solver':>8} " + " ".join(f"{c:>17}" for c in cols) + f" {'RT x (expert)':>14}"
+        f" {'RT x (+env)':>12}"
+    )
+    for s, m in rows.items():
+        rt = period / m["expert_step_3uav"]
+        rt_env = period / (m["expert_step_3uav"] + m["env_step"])
+        print(
+            f"{s:>8} " + " ".join(f"{m[c]:>14.3f} ms" for c in cols) + f" {rt:>14.2f}"
+            f" {rt_env:>12.2f}"
+        )
+    if "ipopt" in rows and len(rows) > 1:
+        for s in rows:
+            if s != "ipopt":
+                print(f"NMPC ipopt / {s}: {rows['ipopt']['nmpc'] / rows[s]['nmpc']:.1f}x")
+
+
+if __name__ == "__main__":
+    main()

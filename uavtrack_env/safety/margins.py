@@ -1,0 +1,57 @@
+"""Safety margins between the barriers and the env's violation thresholds (not in the paper).
+
+The env counts ``d < R_s`` as a UAV-UAV collision and ``d > R_c`` as a broken link, while the
+barriers keep ``h >= 0`` only up to round-off (and, with the velocity-lag model, up to the lag), so
+the expert and the RL shield certify with ``R_s + r_s_margin`` and ``R_c - r_c_margin``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+
+from uavtrack_env.config import CBFConfig
+
+
+@dataclass(frozen=True)
+class ShieldMargins:
+    """Safety margins of the RL shield (not in the paper; see the module docstring)."""
+
+    r_s_margin: float = 0.05
+    """Added to R_s (eq. 20) when certifying, so round-off never lets d drop below the env's R_s."""
+    r_c_margin: float = 0.05
+    """Subtracted from R_c (eq. 29) when certifying (D_s is capped at the reduced R_c, eq. 27)."""
+    target_margin: float = 0.25
+    """Added (m) to the car's heading-free half extents: estimate error the shield tolerates."""
+    target_sigmas: float = 3.0
+    """Further inflation in standard deviations of the UKF's target-position estimate."""
+    target_margin_max: float = 2.0
+    """Cap (m) on the total inflation of the car box (long dropouts grow the covariance)."""
+    surface_gap: float = 0.1
+    """Required gap (m) between the UAV sphere and an obstacle/the ground at the barrier's edge:
+    ``obstacle_clearance - uav_radius`` and ``z_min - uav_radius`` must be at least this."""
+
+    def __post_init__(self) -> None:
+        for f in dataclasses.fields(self):
+            value = getattr(self, f.name)
+            if not (isinstance(value, int | float) and math.isfinite(value) and value >= 0):
+                raise ValueError(f"{f.name} must be a finite number >= 0, got {value!r}")
+        if self.target_margin_max < self.target_margin:
+            raise ValueError("target_margin_max must be >= target_margin")
+
+
+def shield_cbf(base: CBFConfig, margins: ShieldMargins) -> CBFConfig:
+    """The CBF config the shield certifies with: R_s + margin, R_c - margin, D_s <= R_c.
+
+    Raises ValueError when the inflated R_s breaks eq. (28) or the ranges become inconsistent.
+    """
+    r_s = base.r_s + margins.r_s_margin
+    r_c = base.r_c - margins.r_c_margin
+    try:
+        return dataclasses.replace(base, r_s=r_s, r_c=r_c, d_s=min(base.d_s, r_c))
+    except ValueError as exc:
+        raise ValueError(
+            f"the shield certifies with R_s + {margins.r_s_margin} = {r_s} m and "
+            f"R_c - {margins.r_c_margin} = {r_c} m, which the CBF config does not allow: {exc}"
+        ) from exc
