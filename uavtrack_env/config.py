@@ -152,7 +152,7 @@ class CBFConfig:
     occlusion_point: Literal["centre", "axis"] = "axis"
     """Occluder point p_o of eq. (38): the box 'centre' (paper) or the point of its vertical axis
     closest in angle to the line of sight ('axis'; tall boxes are not points)."""
-    occlusion_size_margin: bool = True
+    occlusion_size_margin: bool = False
     """Not in the paper: widen theta* by the box's angular radius asin(r_xy / |p_o - p|)."""
 
     def __post_init__(self) -> None:
