@@ -7,25 +7,8 @@ import copy
 import numpy as np
 import pytest
 
-from uavtrack_env import uavtrack_v0
-
 AGENTS = ["uav_0", "uav_1", "uav_2"]
 GOOD = np.array([0.05, -0.02, 0.1, 0.03], np.float32)
-
-
-@pytest.fixture
-def make_env():
-    made = []
-
-    def factory(**kwargs):
-        kwargs.setdefault("scenario", "A")
-        env = uavtrack_v0.parallel_env(**kwargs)
-        made.append(env)
-        return env
-
-    yield factory
-    for env in made:
-        env.close()
 
 
 def _snapshot(env) -> dict:

@@ -9,7 +9,6 @@ import pybullet as p
 import pytest
 from scipy.sparse.csgraph import connected_components
 
-from uavtrack_env import uavtrack_v0
 from uavtrack_env.config import DT, DetectorConfig
 from uavtrack_env.geometry import point_box_distance, world_to_cam_vec, wrap_angle
 
@@ -26,21 +25,6 @@ TABLE_VI = {
     ("C", 0): [(0, 6, -1.57), (-6, 0, 0), (0, -6, 1.57)],
     ("C", 1): [(-2, 6, -1.2), (-6, 0, 0), (-2, -6, 1.2)],
 }
-
-
-@pytest.fixture
-def make_env():
-    made = []
-
-    def factory(**kwargs):
-        kwargs.setdefault("scenario", "A")
-        env = uavtrack_v0.parallel_env(**kwargs)
-        made.append(env)
-        return env
-
-    yield factory
-    for env in made:
-        env.close()
 
 
 def _zeros(env) -> dict:

@@ -9,22 +9,9 @@ import numpy as np
 import pytest
 
 from baselines import evaluate
+from tests.conftest import METRICS_UAV_KEYS
 from uavtrack_env import uavtrack_v0
 from uavtrack_env.expert import ExpertPolicy
-
-UAV_KEYS = {
-    "rms_u_px",
-    "rms_v_px",
-    "rms_depth_m",
-    "collision_ok",
-    "connectivity_ok",
-    "occlusion_ok",
-    "min_uav_dist_m",
-    "max_uav_dist_m",
-    "min_obstacle_clearance_m",
-    "min_occlusion_angle_deg",
-    "detected_fraction",
-}
 
 
 def test_evaluate_cli_writes_valid_metrics(tmp_path):
@@ -36,7 +23,7 @@ def test_evaluate_cli_writes_valid_metrics(tmp_path):
     assert m["duration_s"] == pytest.approx(1.0)
     assert set(m["uavs"]) == {"uav_0", "uav_1", "uav_2"}
     for r in m["uavs"].values():
-        assert UAV_KEYS <= set(r)
+        assert METRICS_UAV_KEYS <= set(r)
         assert all(math.isfinite(r[k]) for k in ("rms_u_px", "rms_v_px", "rms_depth_m"))
         assert r["collision_ok"] and r["connectivity_ok"]
         assert r["detected_fraction"] > 0.9

@@ -14,23 +14,10 @@ pytest.importorskip("stable_baselines3")
 from stable_baselines3 import PPO
 
 from baselines.compare import comparison_table, env_args, make_eval_env, run_policy_episode
+from tests.conftest import METRICS_UAV_KEYS
 from train import ppo
 
-UAV_KEYS = {
-    "rms_u_px",
-    "rms_v_px",
-    "rms_depth_m",
-    "collision_ok",
-    "connectivity_ok",
-    "occlusion_ok",
-    "theta_ok",
-    "min_uav_dist_m",
-    "max_uav_dist_m",
-    "min_obstacle_clearance_m",
-    "min_occlusion_angle_deg",
-    "detected_fraction",
-    "steps",
-}
+UAV_KEYS = METRICS_UAV_KEYS | {"theta_ok", "steps"}
 # 2 copies x 3 UAVs = 6 rows; 64 steps per rollout -> 384 agent-steps per rollout
 SMOKE = [
     "--n-envs", "2", "--n-steps", "64", "--batch-size", "192", "--n-epochs", "1",
