@@ -13,6 +13,7 @@ from __future__ import annotations
 import argparse
 import platform
 import statistics
+import tempfile
 import time
 import warnings
 
@@ -23,7 +24,13 @@ from train.ppo import make_args, make_vec_env
 
 def vec_rate(shield: bool, steps: int, n_envs: int, seed: int) -> float:
     """Agent-steps/s of the VecEnv alone (random actions)."""
-    args = make_args(out="/tmp/unused", shield=shield, n_envs=n_envs, seed=seed, normalize=False)
+    args = make_args(
+        out=tempfile.mkdtemp(prefix="uavtrack-bench-"),
+        shield=shield,
+        n_envs=n_envs,
+        seed=seed,
+        normalize=False,
+    )
     vec = make_vec_env(args)
     vec.reset()
     rng = np.random.default_rng(seed)
@@ -42,7 +49,9 @@ def learn_rate(shield: bool, steps: int, n_envs: int, n_epochs: int, seed: int) 
     from stable_baselines3 import PPO
 
     torch.set_num_threads(1)
-    args = make_args(out="/tmp/unused", shield=shield, n_envs=n_envs, seed=seed)
+    args = make_args(
+        out=tempfile.mkdtemp(prefix="uavtrack-bench-"), shield=shield, n_envs=n_envs, seed=seed
+    )
     vec = make_vec_env(args)
     model = PPO(
         "MlpPolicy",
