@@ -476,7 +476,7 @@ class UAVTrackEnv(ParallelEnv):
         truncations = {a: truncate for a in self.agents}
         self.alive &= ~collided
         self.agents = [a for a in self.agents if not (terminations[a] or truncate)]
-        if self.agents and (~self.alive).any():
+        if self.agents and collided.any():  # park the UAVs that just left
             self.world.set_poses(
                 self.position, self.yaw, self.alive, self.target.center(), self.target.heading
             )
