@@ -111,6 +111,7 @@ class UAVTrackEnv(ParallelEnv):
         )
         self.world = World(gui=self.render_mode == "human")
         self.detector = Detector(cfg.camera, cfg.detector)
+        self._image_size = np.array([cfg.camera.width, cfg.camera.height], float)
         self.np_random: np.random.Generator | None = None
         self.layout: Layout | None = None
         self.last_detection: Detections | None = None
@@ -369,7 +370,8 @@ class UAVTrackEnv(ParallelEnv):
         center_error = np.array([cam.fx * s[0] + cam.cu, cam.fy * s[1] + cam.cv]) - ref_px
         return {
             "features": s.copy(),
-            "pixel_error": det.box_center[i] - ref_px,
+            # Capped at the image size: a car behind the camera projects arbitrarily far.
+            "pixel_error": np.clip(det.box_center[i] - ref_px, -self._image_size, self._image_size),
             "center_pixel_error": center_error,
             "depth_error": float(1.0 / s[2] - 1.0 / ref[2]) if det.in_front[i] else None,
             "target_position": self.target.center(),

@@ -2,7 +2,7 @@
 
 RMS pixel errors are taken over every step of the episode, as in Table V between the centre of the
 bounding box and the reference pixel (c + f x*), on the noise-free box (so detector noise does not
-inflate them); steps where the target is lost still count.
+inflate them); steps where the target is lost still count, capped at the image size per axis.
 """
 
 from __future__ import annotations
