@@ -18,8 +18,6 @@ dynamics `feature_rates` also work with CasADi symbols.
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 
 
@@ -100,15 +98,6 @@ def occlusion_angle(p_uav: np.ndarray, p_obstacle: np.ndarray, n: np.ndarray) ->
     d = np.asarray(p_obstacle, dtype=float) - np.asarray(p_uav, dtype=float)
     cos = np.sum(d * n, -1) / (np.linalg.norm(d, axis=-1) * np.linalg.norm(n, axis=-1))
     return np.arccos(np.clip(cos, -1.0, 1.0))
-
-
-def box_corners(center: np.ndarray, half_extents: np.ndarray, yaw: float) -> np.ndarray:
-    """The 8 corners (8, 3) of a box rotated by ``yaw`` about z."""
-    signs = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], float)
-    local = signs * half_extents
-    c, s = math.cos(yaw), math.sin(yaw)
-    rot = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-    return center + local @ rot.T
 
 
 def point_box_distance(points: np.ndarray, centers: np.ndarray, half_extents: np.ndarray):

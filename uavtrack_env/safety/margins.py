@@ -16,7 +16,7 @@ from uavtrack_env.config import CBFConfig
 
 @dataclass(frozen=True)
 class ShieldMargins:
-    """Safety margins of the RL shield (not in the paper; see the module docstring)."""
+    """Safety margins of the expert's CBF-QP and the RL shield (not in the paper; see above)."""
 
     r_s_margin: float = 0.05
     """Added to R_s (eq. 20) when certifying, so round-off never lets d drop below the env's R_s."""
