@@ -37,8 +37,19 @@ from baselines.compare import (
 from baselines.evaluate import table
 from uavtrack_env.config import DT
 
-ENV_FIELDS = ("shield", "n_uavs", "max_cycles", "terminate_on_collision", "dynamics", "n_envs")
+ENV_FIELDS = (
+    "shield",
+    "n_uavs",
+    "max_cycles",
+    "terminate_on_collision",
+    "dynamics",
+    "n_envs",
+    "reward_shape",
+    "collision_penalty",
+)
 """Arguments that define the training env; ``--resume`` takes them from the run's args.json."""
+BC_SEED = 50_000
+"""Demonstration worlds are seeded BC_SEED + seed + episode, apart from the evaluation seeds."""
 
 
 @dataclass
@@ -61,6 +72,13 @@ class Args:
     dynamics: str = field(
         default="integrator", metadata={"help": "'integrator' (eq. 3, shield exact) or 'lag'"}
     )
+    reward_shape: str = field(
+        default="exp",
+        metadata={"help": "'exp' (r = exp(-c) in (0, 1]: crashing never pays) or 'cost' (r = -c)"},
+    )
+    collision_penalty: float = field(
+        default=10.0, metadata={"help": "reward subtracted on a UAV's collision step"}
+    )
     n_steps: int = field(default=256, metadata={"help": "PPO rollout length per row"})
     batch_size: int = field(default=512, metadata={"help": "PPO minibatch size"})
     n_epochs: int = field(default=10, metadata={"help": "PPO epochs per rollout"})
@@ -70,8 +88,28 @@ class Args:
     clip_range: float = field(default=0.2, metadata={"help": "PPO clip range"})
     ent_coef: float = field(default=0.0, metadata={"help": "entropy bonus"})
     net_arch: str = field(default="128,128", metadata={"help": "hidden sizes of pi and vf"})
+    log_std_init: float = field(
+        default=-2.0,
+        metadata={"help": "initial log std of the Gaussian policy (-2: 0.14, i.e. 1.4 m/s)"},
+    )
     normalize: bool = field(
         default=True, metadata={"help": "VecNormalize observations and rewards"}
+    )
+    bc_episodes: int = field(
+        default=0,
+        metadata={"help": "expert episodes for a behaviour-cloning warm start (0: from scratch)"},
+    )
+    bc_epochs: int = field(default=30, metadata={"help": "behaviour-cloning epochs"})
+    bc_demos: Path | None = field(
+        default=None,
+        metadata={"help": "demonstrations .npz to reuse if it exists, else written there"},
+    )
+    value_warmup: int = field(
+        default=100_000,
+        metadata={"help": "agent-steps training only the critic after cloning (actor frozen)"},
+    )
+    target_kl: float = field(
+        default=0.0, metadata={"help": "stop a PPO update's epochs beyond this KL (0: off)"}
     )
     checkpoint_freq: int = field(default=50_000, metadata={"help": "agent-steps between saves"})
     eval_scenarios: str = field(
@@ -119,6 +157,8 @@ def make_args(**given: Any) -> Args:
             raise ValueError(f"--{name.replace('_', '-')} must be >= 1")
     if args.terminate_on_collision not in ("all", "agent"):
         raise ValueError("--terminate-on-collision must be 'all' or 'agent'")
+    if args.reward_shape not in ("exp", "cost"):
+        raise ValueError(f"--reward-shape must be 'exp' or 'cost', got {args.reward_shape!r}")
     if args.dynamics not in ("integrator", "lag"):
         raise ValueError("--dynamics must be 'integrator' or 'lag'")
     if set(args.eval_scenarios) - set("ABC"):
@@ -140,6 +180,7 @@ def env_fn(args: Args):
             max_cycles=args.max_cycles,
             terminate_on_collision=args.terminate_on_collision,
             dynamics={"model": args.dynamics},
+            reward={"shape": args.reward_shape, "collision_penalty": args.collision_penalty},
         )
         if args.shield:
             import warnings
@@ -185,6 +226,15 @@ def last_checkpoint(run_dir: Path) -> tuple[Path, Path | None]:
     return path, norm if norm.exists() else None
 
 
+def save_checkpoint(model, vec, ckdir: Path) -> None:
+    """Model and VecNormalize statistics under CheckpointCallback's names (for ``--resume``)."""
+    from stable_baselines3.common.vec_env import VecNormalize
+
+    model.save(ckdir / f"ppo_{model.num_timesteps}_steps.zip")
+    if isinstance(vec, VecNormalize):
+        vec.save(str(ckdir / f"ppo_vecnormalize_{model.num_timesteps}_steps.pkl"))
+
+
 def _progress_callback(enabled: bool):
     """SB3's rich progress bar if rich is installed, else a tqdm callback (None if disabled)."""
     from stable_baselines3.common.callbacks import BaseCallback
@@ -215,6 +265,22 @@ def _progress_callback(enabled: bool):
 
 
 # ---------------------------------------------------------------------- train
+def demonstrations(args: Args) -> tuple[np.ndarray, np.ndarray]:
+    """The expert's (observations, actions) on unshielded training worlds, cached in a .npz."""
+    from train import bc
+
+    path = Path(args.bc_demos or args.out / "demos.npz")
+    if path.exists():
+        with np.load(path) as d:
+            print(f"behaviour cloning: {len(d['obs'])} samples from {path}")
+            return d["obs"], d["actions"]
+    make = env_fn(dataclasses.replace(args, shield=False))
+    obs, actions = bc.collect(make, args.bc_episodes, BC_SEED + args.seed, args.progress)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    np.savez_compressed(path, obs=obs, actions=actions)
+    return obs, actions
+
+
 def train(args: Args):
     """Train (or resume) and save; returns the model and its VecEnv."""
     import torch
@@ -247,12 +313,33 @@ def train(args: Args):
             gae_lambda=args.gae_lambda,
             clip_range=args.clip_range,
             ent_coef=args.ent_coef,
-            policy_kwargs={"net_arch": {"pi": hidden, "vf": hidden}},
+            target_kl=args.target_kl or None,
+            policy_kwargs={
+                "net_arch": {"pi": hidden, "vf": hidden},
+                "log_std_init": args.log_std_init,
+            },
             tensorboard_log=str(out / "tb"),
             seed=args.seed,
             device="cpu",
             verbose=0,
         )
+    bc_stats: dict = {}
+    if args.resume is None and args.bc_episodes > 0:
+        from train import bc
+
+        obs, actions = demonstrations(args)
+        normalizer = vec if isinstance(vec, VecNormalize) else None
+        bc_stats = bc.pretrain(
+            model,
+            normalizer,
+            obs,
+            actions,
+            epochs=args.bc_epochs,
+            seed=args.seed,
+            progress=args.progress,
+        )
+        print("behaviour cloning: " + ", ".join(f"{k} {v:.4g}" for k, v in bc_stats.items()))
+        save_checkpoint(model, vec, ckdir)  # the cloned policy, before any PPO step
     ckpt = CheckpointCallback(
         save_freq=max(1, args.checkpoint_freq // vec.num_envs),
         save_path=str(ckdir),
@@ -262,26 +349,40 @@ def train(args: Args):
     bar, rich_bar = _progress_callback(args.progress)
     t0 = time.perf_counter()
     start = model.num_timesteps
-    model.learn(
-        total_timesteps=args.timesteps,
-        callback=[c for c in (ckpt, bar) if c is not None],
-        reset_num_timesteps=args.resume is None,
-        progress_bar=rich_bar,
-        tb_log_name="PPO",
-    )
+    callbacks = [c for c in (ckpt, bar) if c is not None]
+    phases = [(args.timesteps, ())]
+    if bc_stats and args.value_warmup > 0:
+        from train.bc import actor_parameters
+
+        warm = min(args.value_warmup, args.timesteps)
+        phases = [(warm, actor_parameters(model.policy)), (args.timesteps - warm, ())]
+    for k, (steps, frozen) in enumerate(phases):
+        if steps <= 0:
+            continue
+        for p in frozen:
+            p.requires_grad_(False)
+        model.learn(
+            total_timesteps=steps,
+            callback=callbacks,
+            reset_num_timesteps=args.resume is None and k == 0,
+            progress_bar=rich_bar,
+            tb_log_name="PPO",
+        )
+        for p in frozen:
+            p.requires_grad_(True)
     elapsed = time.perf_counter() - t0
     # final save, also as a checkpoint so that --resume continues from the end
     model.save(out / "model.zip")
-    model.save(ckdir / f"ppo_{model.num_timesteps}_steps.zip")
     if isinstance(vec, VecNormalize):
         vec.save(str(out / "vecnormalize.pkl"))
-        vec.save(str(ckdir / f"ppo_vecnormalize_{model.num_timesteps}_steps.pkl"))
+    save_checkpoint(model, vec, ckdir)
     saved = {k: (str(v) if isinstance(v, Path) else v) for k, v in dataclasses.asdict(args).items()}
     saved.update(
         num_timesteps=int(model.num_timesteps),
         this_call_timesteps=int(model.num_timesteps - start),
         train_seconds=elapsed,
         agent_steps_per_s=(model.num_timesteps - start) / elapsed,
+        **bc_stats,
     )
     (out / "args.json").write_text(json.dumps(saved, indent=2))
     return model, vec

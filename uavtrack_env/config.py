@@ -243,7 +243,7 @@ class CommsConfig:
 
 @dataclass(frozen=True)
 class RewardConfig:
-    """Reward r = -(e^T Q e) - u^T R u, the stage cost of eq. (18) on true features."""
+    """Reward from the stage cost c = e^T Q e + u^T R u of eq. (18) on true features."""
 
     q: tuple[float, float, float, float] = (1.0, 1.0, 100.0, 1.0)
     """Weights on [x1, x2, x3, psi] errors (Q_s diagonal, Table III)."""
@@ -251,10 +251,21 @@ class RewardConfig:
     """Weights on u = [v_cx, v_cy, v_cz, omega_cy] in SI units (R_u diagonal, Table III)."""
     lost_penalty: float = 1.0
     """Added to the tracking error when the target is not detected."""
+    shape: str = "cost"
+    """'cost': r = -c with c the stage cost of eq. (18) (the paper's objective). 'exp':
+    r = exp(-c) in (0, 1], for RL: staying alive always pays, so a negative reward never makes
+    ending the episode (by crashing) the best policy, and a lost target cannot dominate the
+    scale."""
+    collision_penalty: float = 0.0
+    """Subtracted from the reward of a UAV on the step it collides (not in the paper)."""
 
     def __post_init__(self) -> None:
         _require(all(w >= 0 for w in (*self.q, *self.r)), "reward weights must be >= 0")
         _require(self.lost_penalty >= 0, "lost_penalty must be >= 0")
+        _require(
+            self.shape in ("cost", "exp"), f"shape must be 'cost' or 'exp', got {self.shape!r}"
+        )
+        _require(self.collision_penalty >= 0, "collision_penalty must be >= 0")
 
 
 @dataclass(frozen=True)

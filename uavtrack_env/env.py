@@ -13,7 +13,7 @@ from . import render as rendering
 from .config import DT, EnvConfig
 from .dynamics import integrate
 from .geometry import occlusion_angle, point_box_distance, world_to_cam_vec
-from .rewards import connected, effort_term, tracking_term
+from .rewards import connected, effort_term, reward, tracking_term
 from .scenarios import Layout, make_layout
 from .sensors import Detections, Detector, receive_positions
 from .target import CAR_HALF_EXTENTS, TargetMotion
@@ -63,8 +63,10 @@ class UAVTrackEnv(ParallelEnv):
     detection, own velocity/yaw rate/heading/altitude, the reference, then K nearest received
     neighbours and K nearest obstacles (camera frame, with masks).
 
-    **Reward**: -(sum q_k e_k^2 + lost_penalty * not_detected) - sum r_k u_k^2, the NMPC stage cost
-    (18) on the true features (weights Table III); both terms in ``info``.
+    **Reward**: from the NMPC stage cost (18) on the true features (weights Table III),
+    c = sum q_k e_k^2 + lost_penalty * not_detected + sum r_k u_k^2: r = -c by default, or
+    r = exp(-c) with ``reward={"shape": "exp"}`` (for RL), minus ``reward.collision_penalty`` on a
+    collision. Both parts of -c are in ``info`` (``reward_tracking``, ``reward_effort``).
 
     **Cost and violations** (``info[agent]``): ``violations = {collision, disconnection,
     occlusion}`` and ``cost`` = how many are true. Collision: touching an obstacle, the car or the
@@ -302,7 +304,7 @@ class UAVTrackEnv(ParallelEnv):
             det.true_features, self.references, det.in_front, det.detected, cfg.reward
         )
         effort = effort_term(u, cfg.reward)
-        reward = -(tracking + effort)
+        rew = reward(tracking + effort, collided, cfg.reward)
         self._clip_count += clipped
         obs_all = self._observations(det, received, clearance, pair)
         theta, in_noi = self._occlusion_angles(tgt_c)
@@ -317,7 +319,7 @@ class UAVTrackEnv(ParallelEnv):
                 "occlusion": bool(occluded[i]),
             }
             obs[agent] = obs_all[i]
-            rewards[agent] = float(reward[i])
+            rewards[agent] = float(rew[i])
             infos[agent] = {
                 "cost": float(sum(violations.values())),
                 "violations": violations,

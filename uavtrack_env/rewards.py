@@ -1,7 +1,8 @@
 """Reward and cost terms, each named, vectorised over the UAVs.
 
-The reward is the stage cost of the NMPC (18) with the sign flipped, evaluated on the true features:
-r = -(sum_k q_k e_k^2 + lost) - sum_k r_k u_k^2, with e = s - s* (psi wrapped) and u in SI units.
+The reward comes from the NMPC's stage cost (18) evaluated on the true features:
+c = sum_k q_k e_k^2 + lost + sum_k r_k u_k^2, with e = s - s* (psi wrapped) and u in SI units;
+r = -c (default) or exp(-c) (for RL), minus an optional collision penalty.
 """
 
 from __future__ import annotations
@@ -38,6 +39,13 @@ def tracking_term(
 def effort_term(u: np.ndarray, cfg: RewardConfig) -> np.ndarray:
     """sum_k r_k u_k^2 (n,), the input cost of eq. (18) with u_d = 0."""
     return (u**2) @ np.asarray(cfg.r)
+
+
+def reward(stage_cost: np.ndarray, collided: np.ndarray, cfg: RewardConfig) -> np.ndarray:
+    """Per-UAV reward (n,) from the stage cost: -c or exp(-c) (``cfg.shape``), minus the
+    collision penalty."""
+    r = -stage_cost if cfg.shape == "cost" else np.exp(-stage_cost)
+    return r - cfg.collision_penalty * collided
 
 
 def connected(dist: np.ndarray, alive: np.ndarray, r_c: float) -> bool:

@@ -1,0 +1,67 @@
+"""Reward shapes: -c (eq. 18) by default, exp(-c) for RL, and the collision penalty."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from uavtrack_env.config import RewardConfig
+
+
+def _rollout(env, steps: int, down_speed: float = 0.0):
+    """Step with uav_0 descending (Y down) at ``down_speed`` (normalised) until it ends."""
+    env.reset(seed=3)
+    out = []
+    for _ in range(steps):
+        acts = {a: np.zeros(4, np.float32) for a in env.agents}
+        acts["uav_0"] = np.array([0.0, down_speed, 0.02, 0.0], np.float32)
+        _, rew, term, _, infos = env.step(acts)
+        out.append((rew, infos))
+        if any(term.values()):
+            break
+    return out
+
+
+def test_default_reward_is_minus_the_stage_cost(make_env):
+    for rew, infos in _rollout(make_env(), 20):
+        for a, r in rew.items():
+            assert r == pytest.approx(infos[a]["reward_tracking"] + infos[a]["reward_effort"])
+            assert r <= 0.0
+
+
+def test_exp_reward_is_exp_of_minus_the_stage_cost(make_env):
+    steps = _rollout(make_env(reward={"shape": "exp"}), 20)
+    rewards = []
+    for rew, infos in steps:
+        for a, r in rew.items():
+            c = -(infos[a]["reward_tracking"] + infos[a]["reward_effort"])
+            assert r == pytest.approx(math.exp(-c), rel=1e-12)
+            rewards.append(r)
+    assert 0.0 < min(rewards) and max(rewards) <= 1.0
+
+
+@pytest.mark.parametrize("shape", ["cost", "exp"])
+def test_collision_penalty_is_charged_once_on_the_colliding_step(make_env, shape):
+    env = make_env(
+        reward={"shape": shape, "collision_penalty": 50.0}, terminate_on_collision="agent"
+    )
+    steps = _rollout(env, 40, down_speed=0.29)  # uav_0 hits the ground (cf. test_env_sensors)
+    assert steps[-1][1]["uav_0"]["collision_with"]["ground"]
+    assert len(steps) > 10
+    for k, (rew, infos) in enumerate(steps):
+        c = -(infos["uav_0"]["reward_tracking"] + infos["uav_0"]["reward_effort"])
+        base = -c if shape == "cost" else math.exp(-c)
+        collided = k == len(steps) - 1
+        assert infos["uav_0"]["violations"]["collision"] is collided
+        assert rew["uav_0"] == pytest.approx(base - 50.0 * collided)
+
+
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [({"shape": "linear"}, "shape must be"), ({"collision_penalty": -1.0}, "collision_penalty")],
+)
+def test_bad_reward_config_raises(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        RewardConfig(**kwargs)

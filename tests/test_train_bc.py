@@ -1,0 +1,117 @@
+"""Behaviour cloning: expert demonstrations, the actor fit, and the critic-only warm-up."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+pytest.importorskip("stable_baselines3")
+
+import gymnasium
+import torch
+from stable_baselines3 import PPO
+from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
+
+from tests.test_train_ppo import SMOKE
+from train import bc, ppo
+from uavtrack_env import uavtrack_v0
+from uavtrack_env.expert import ExpertPolicy
+
+
+def _small_world():
+    return uavtrack_v0.parallel_env(scenario="random", max_cycles=40)
+
+
+def test_collect_records_the_experts_actions():
+    obs, actions = bc.collect(_small_world, episodes=2, seed=7, progress=False)
+    assert obs.shape == (2 * 40 * 3, _small_world().observation_space("uav_0").shape[0])
+    assert actions.shape == (240, 4) and obs.dtype == actions.dtype == np.float32
+    assert np.all(np.abs(actions) <= 1.0) and np.abs(actions).max() > 0
+    # replaying the first episode by hand gives the same pairs (same seed, deterministic expert)
+    env = _small_world()
+    o, infos = env.reset(seed=7)
+    expert = ExpertPolicy.from_env(env)
+    for k in range(40):
+        acts = expert(o, infos)
+        for i, a in enumerate(env.agents):
+            np.testing.assert_array_equal(obs[3 * k + i], o[a])
+            np.testing.assert_array_equal(actions[3 * k + i], acts[a])
+        o, _, _, _, infos = env.step(acts)
+    with pytest.raises(ValueError, match="episodes"):
+        bc.collect(_small_world, episodes=0, seed=0)
+
+
+class _Box(gymnasium.Env):
+    observation_space = gymnasium.spaces.Box(-10, 10, (5,), np.float32)
+    action_space = gymnasium.spaces.Box(-1, 1, (2,), np.float32)
+
+    def reset(self, *, seed=None, options=None):
+        return np.zeros(5, np.float32), {}
+
+    def step(self, action):
+        return np.zeros(5, np.float32), 0.0, True, False, {}
+
+
+def test_pretrain_fits_a_known_linear_map_and_sets_the_normaliser():
+    rng = np.random.default_rng(0)
+    obs = (rng.normal(size=(4000, 5)) * [1, 2, 3, 4, 5] + [5, 0, -5, 1, 2]).astype(np.float32)
+    W = rng.uniform(-0.05, 0.05, (5, 2))
+    actions = ((obs - obs.mean(0)) / obs.std(0) @ W).astype(np.float32)
+    vec = VecNormalize(DummyVecEnv([_Box]), norm_reward=False)
+    model = PPO("MlpPolicy", vec, seed=0, device="cpu")
+    stats = bc.pretrain(model, vec, obs, actions, epochs=40, progress=False)
+    np.testing.assert_allclose(vec.obs_rms.mean, obs.mean(0), rtol=1e-5)
+    np.testing.assert_allclose(vec.obs_rms.var, obs.var(0), rtol=1e-4)
+    assert stats["bc_val_loss"] < 0.05 < stats["bc_val_loss_first_epoch"]
+    with torch.no_grad():
+        x = torch.as_tensor(vec.normalize_obs(obs[:200]))
+        pred = model.policy.get_distribution(x).distribution.mean.numpy()
+    assert np.sqrt(np.mean((pred - actions[:200]) ** 2)) < 0.25 * actions.std()
+
+
+def test_value_warmup_freezes_the_actor_and_trains_the_critic(tmp_path):
+    """With the warm-up covering all steps, PPO changes the critic but not the cloned actor."""
+    out = tmp_path / "run"
+    ppo.main(
+        ["--no-shield", "--timesteps", "768", "--out", str(out), *SMOKE]
+        + ["--bc-episodes", "1", "--bc-epochs", "2", "--value-warmup", "768"]
+    )
+    saved = json.loads((out / "args.json").read_text())
+    assert saved["bc_samples"] == 100 * 3 and (out / "demos.npz").exists()
+    cloned = PPO.load(out / "checkpoints" / "ppo_0_steps.zip", device="cpu").policy
+    trained = PPO.load(out / "model.zip", device="cpu")
+    assert trained.num_timesteps == 768
+    actor = [
+        *trained.policy.mlp_extractor.policy_net.parameters(),
+        *trained.policy.action_net.parameters(),
+        trained.policy.log_std,
+    ]
+    before = [
+        *cloned.mlp_extractor.policy_net.parameters(),
+        *cloned.action_net.parameters(),
+        cloned.log_std,
+    ]
+    for a, b in zip(actor, before, strict=True):
+        assert torch.equal(a, b)
+    critic = [
+        *trained.policy.value_net.parameters(),
+        *trained.policy.mlp_extractor.value_net.parameters(),
+    ]
+    critic0 = [*cloned.value_net.parameters(), *cloned.mlp_extractor.value_net.parameters()]
+    assert any(not torch.equal(a, b) for a, b in zip(critic, critic0, strict=True))
+
+
+def test_without_warmup_ppo_moves_the_actor(tmp_path):
+    """The control case of the test above: the same run with no warm-up changes the actor."""
+    out = tmp_path / "run"
+    ppo.main(
+        ["--no-shield", "--timesteps", "384", "--out", str(out), *SMOKE]
+        + ["--bc-episodes", "1", "--bc-epochs", "1", "--value-warmup", "0"]
+    )
+    cloned = PPO.load(out / "checkpoints" / "ppo_0_steps.zip", device="cpu").policy
+    trained = PPO.load(out / "model.zip", device="cpu").policy
+    a = torch.cat([p.flatten() for p in trained.action_net.parameters()])
+    b = torch.cat([p.flatten() for p in cloned.action_net.parameters()])
+    assert not torch.equal(a, b)

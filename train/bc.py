@@ -1,0 +1,117 @@
+"""Behaviour cloning from the expert: demonstrations and a warm start for PPO's actor.
+
+PPO from scratch learns this task slowly (the expert's actions are small, ~0.05 of the action
+range, and the tracking signal is weak against exploration noise). ``collect`` runs
+`ExpertPolicy` on seeded random worlds and records every live agent's (observation, action);
+``pretrain`` sets the VecNormalize observation statistics from the demonstrations and fits the SB3
+policy's mean action to them (MSE per action dimension, scaled by its spread). PPO then fine-tunes
+from there. Only the actor is fitted; ``train.ppo`` then trains the critic alone for
+``--value-warmup`` steps (actor frozen), because PPO steps taken with an untrained critic's
+advantages first undo much of what was cloned (measured: the mean episode return fell from 0.77 to
+0.60 per step in the first 300k steps).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+from tqdm import tqdm
+
+from uavtrack_env.expert import ExpertPolicy
+
+
+def collect(
+    make_env: Callable[[], Any], episodes: int, seed: int, progress: bool = True
+) -> tuple[np.ndarray, np.ndarray]:
+    """Expert rollouts of a full episode each on ``make_env()`` worlds seeded ``seed + e``.
+
+    Returns (observations (N, n_obs), actions (N, 4)), float32, one row per live agent-step.
+    """
+    if episodes < 1:
+        raise ValueError(f"episodes must be >= 1, got {episodes}")
+    obs_rows, act_rows = [], []
+    bar = tqdm(total=episodes, desc="expert demos", unit="episode", disable=not progress)
+    for e in range(episodes):
+        env = make_env()
+        obs, infos = env.reset(seed=seed + e)
+        expert = ExpertPolicy.from_env(env)
+        while env.agents:
+            actions = expert(obs, infos)
+            for agent, a in actions.items():
+                obs_rows.append(obs[agent])
+                act_rows.append(a)
+            obs, _, _, _, infos = env.step(actions)
+        env.close()
+        bar.update()
+    bar.close()
+    return np.asarray(obs_rows, np.float32), np.asarray(act_rows, np.float32)
+
+
+def actor_parameters(policy: Any, with_log_std: bool = True) -> list:
+    """The parameters that define an SB3 ActorCriticPolicy's action distribution."""
+    params = [
+        *policy.features_extractor.parameters(),
+        *policy.mlp_extractor.policy_net.parameters(),
+        *policy.action_net.parameters(),
+    ]
+    return params + [policy.log_std] if with_log_std else params
+
+
+def pretrain(
+    model: Any,
+    normalizer: Any | None,
+    obs: np.ndarray,
+    actions: np.ndarray,
+    *,
+    epochs: int = 30,
+    batch_size: int = 256,
+    learning_rate: float = 1e-3,
+    seed: int = 0,
+    progress: bool = True,
+) -> dict[str, float]:
+    """Fit ``model.policy``'s mean action to ``actions`` (in place); returns the fit's losses.
+
+    With a ``normalizer`` (SB3 VecNormalize), its observation statistics are first set to the
+    demonstrations' mean and variance, so that PPO starts from the inputs the actor was fitted on.
+    Loss: mean over dimensions of ((mean - action) / std(action))^2, so that a loss of 1 means
+    "no better than the average action".
+    """
+    import torch
+
+    if len(obs) != len(actions) or len(obs) < batch_size:
+        raise ValueError(f"need >= {batch_size} (obs, action) pairs, got {len(obs)}")
+    if normalizer is not None:
+        normalizer.obs_rms.mean = obs.mean(axis=0).astype(np.float64)
+        normalizer.obs_rms.var = obs.var(axis=0).astype(np.float64)
+        normalizer.obs_rms.count = float(len(obs))
+        obs = normalizer.normalize_obs(obs)
+    policy = model.policy
+    x = torch.as_tensor(obs, dtype=torch.float32)
+    y = torch.as_tensor(actions, dtype=torch.float32)
+    scale = y.std(dim=0).clamp_min(1e-3)
+    opt = torch.optim.Adam(actor_parameters(policy, with_log_std=False), lr=learning_rate)
+    gen = torch.Generator().manual_seed(seed)
+    n_val = max(1, len(x) // 10)
+    perm = torch.randperm(len(x), generator=gen)
+    val, train = perm[:n_val], perm[n_val:]
+
+    def loss_of(idx: torch.Tensor) -> torch.Tensor:
+        mean = policy.get_distribution(x[idx]).distribution.mean
+        return (((mean - y[idx]) / scale) ** 2).mean()
+
+    policy.train()
+    first = None
+    for _ in tqdm(range(epochs), desc="behaviour cloning", unit="epoch", disable=not progress):
+        order = train[torch.randperm(len(train), generator=gen)]
+        for start in range(0, len(order), batch_size):
+            loss = loss_of(order[start : start + batch_size])
+            opt.zero_grad()
+            loss.backward()
+            opt.step()
+        with torch.no_grad():
+            v = float(loss_of(val))
+        first = v if first is None else first
+    policy.set_training_mode(False)
+    return {"bc_samples": float(len(x)), "bc_val_loss_first_epoch": first, "bc_val_loss": v}
