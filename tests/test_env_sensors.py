@@ -551,15 +551,21 @@ def test_car_path_never_touches_an_obstacle(make_env, scenario):
             )
 
 
-@pytest.mark.parametrize("n_uavs", [3, 5])
-def test_random_worlds_start_feasible(make_env, n_uavs):
-    env = make_env(scenario="random", n_uavs=n_uavs)
+@pytest.mark.parametrize(
+    "n_uavs, spread", [(3, {}), (5, {}), (3, {"start_offset": 3.0, "start_heading_offset": 0.3})]
+)
+def test_random_worlds_start_feasible(make_env, n_uavs, spread):
+    env = make_env(scenario="random", n_uavs=n_uavs, random_world=spread)
     cfg = env.config
+    offsets = []
     for seed in range(20):
         _, infos = env.reset(seed=seed)
         lay = env.layout
         pos = env.position
         assert len(pos) == n_uavs
+        refs = lay.references
+        slot = np.column_stack([np.cos(refs[:, 3]), np.sin(refs[:, 3])]) / refs[:, 2:3]
+        offsets.append(np.abs(pos[:, :2] - slot).max())
         if len(lay.obstacle_centers):
             clear = point_box_distance(pos, lay.obstacle_centers, lay.obstacle_half_extents)
             assert clear.min() > cfg.uav_radius, seed
@@ -573,3 +579,6 @@ def test_random_worlds_start_feasible(make_env, n_uavs):
             assert not infos[a]["violations"]["collision"], (seed, a)
             assert not infos[a]["violations"]["disconnection"], (seed, a)
             assert not infos[a]["violations"]["occlusion"], (seed, a)
+    limit = spread.get("start_offset", 0.2)
+    assert max(offsets) <= limit * 1.5 + 0.3  # radial + tangential draws, 0.03 rad ring jitter
+    assert max(offsets) > 0.5 * limit  # and the offsets do spread

@@ -115,3 +115,32 @@ def test_without_warmup_ppo_moves_the_actor(tmp_path):
     a = torch.cat([p.flatten() for p in trained.action_net.parameters()])
     b = torch.cat([p.flatten() for p in cloned.action_net.parameters()])
     assert not torch.equal(a, b)
+
+
+def _cloning_loss(model, normalizer, obs, actions) -> float:
+    y = torch.as_tensor(actions)
+    with torch.no_grad():
+        x = torch.as_tensor(normalizer.normalize_obs(obs), dtype=torch.float32)
+        return float(bc.cloning_loss(model.policy, x, y, y.std(dim=0).clamp_min(1e-3)))
+
+
+def test_anchor_steps_keep_fitting_the_demonstrations(tmp_path):
+    """With PPO's own step size at 0, only the anchor moves the actor: the loss must fall."""
+    import pickle
+
+    out = tmp_path / "run"
+    ppo.main(
+        ["--no-shield", "--timesteps", "768", "--out", str(out), *SMOKE]
+        + ["--bc-episodes", "1", "--bc-epochs", "1", "--value-warmup", "0"]
+        + ["--learning-rate", "0", "--bc-anchor", "20"]
+    )
+    with np.load(out / "demos.npz") as d:
+        obs, actions = d["obs"], d["actions"]
+    with (out / "vecnormalize.pkl").open("rb") as f:
+        norm = pickle.load(f)
+    before = _cloning_loss(PPO.load(out / "checkpoints" / "ppo_0_steps.zip"), norm, obs, actions)
+    after = _cloning_loss(PPO.load(out / "model.zip"), norm, obs, actions)
+    assert after < 0.8 * before
+    with pytest.raises(ValueError, match="bc-anchor needs"):
+        ppo.main(["--no-shield", "--timesteps", "384", "--out", str(tmp_path / "x"), *SMOKE]
+                 + ["--bc-anchor", "5"])  # fmt: skip

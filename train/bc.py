@@ -59,6 +59,12 @@ def actor_parameters(policy: Any, with_log_std: bool = True) -> list:
     return params + [policy.log_std] if with_log_std else params
 
 
+def cloning_loss(policy: Any, obs: Any, actions: Any, scale: Any) -> Any:
+    """Mean over dimensions of ((policy mean - action) / scale)^2 (torch tensors)."""
+    mean = policy.get_distribution(obs).distribution.mean
+    return (((mean - actions) / scale) ** 2).mean()
+
+
 def pretrain(
     model: Any,
     normalizer: Any | None,
@@ -98,8 +104,7 @@ def pretrain(
     val, train = perm[:n_val], perm[n_val:]
 
     def loss_of(idx: torch.Tensor) -> torch.Tensor:
-        mean = policy.get_distribution(x[idx]).distribution.mean
-        return (((mean - y[idx]) / scale) ** 2).mean()
+        return cloning_loss(policy, x[idx], y[idx], scale)
 
     policy.train()
     first = None
@@ -115,3 +120,56 @@ def pretrain(
         first = v if first is None else first
     policy.set_training_mode(False)
     return {"bc_samples": float(len(x)), "bc_val_loss_first_epoch": first, "bc_val_loss": v}
+
+
+def anchor_callback(
+    obs: np.ndarray,
+    actions: np.ndarray,
+    steps: int,
+    batch_size: int = 256,
+    learning_rate: float = 1e-4,
+    seed: int = 0,
+) -> Any:
+    """SB3 callback: after every PPO update, ``steps`` minibatch steps of the cloning loss on the
+    demonstrations (observations normalised with the current VecNormalize statistics).
+
+    This keeps the actor near the expert while PPO fine-tunes it (the augmented loss of DAPG,
+    Rajeswaran et al. 2018, applied as separate steps); TensorBoard logs ``train/bc_loss``.
+    """
+    import torch
+    from stable_baselines3.common.callbacks import BaseCallback
+    from stable_baselines3.common.vec_env import VecNormalize
+
+    y = torch.as_tensor(actions, dtype=torch.float32)
+    scale = y.std(dim=0).clamp_min(1e-3)
+    gen = torch.Generator().manual_seed(seed)
+
+    class Anchor(BaseCallback):
+        def _on_training_start(self) -> None:
+            self.opt = torch.optim.Adam(
+                actor_parameters(self.model.policy, with_log_std=False), lr=learning_rate
+            )
+            self.updates = self.model._n_updates
+
+        def _on_rollout_start(self) -> None:
+            if self.model._n_updates == self.updates:  # no PPO update since the last call
+                return
+            self.updates = self.model._n_updates
+            env = self.model.get_env()
+            o = env.normalize_obs(obs) if isinstance(env, VecNormalize) else obs
+            x = torch.as_tensor(o, dtype=torch.float32)
+            policy = self.model.policy
+            total = 0.0
+            for _ in range(steps):
+                idx = torch.randint(len(x), (batch_size,), generator=gen)
+                loss = cloning_loss(policy, x[idx], y[idx], scale)
+                self.opt.zero_grad()
+                loss.backward()
+                self.opt.step()
+                total += float(loss.detach())
+            self.logger.record("train/bc_loss", total / max(steps, 1))
+
+        def _on_step(self) -> bool:
+            return True
+
+    return Anchor()

@@ -46,6 +46,8 @@ ENV_FIELDS = (
     "n_envs",
     "reward_shape",
     "collision_penalty",
+    "start_offset",
+    "start_heading_offset",
 )
 """Arguments that define the training env; ``--resume`` takes them from the run's args.json."""
 BC_SEED = 50_000
@@ -104,6 +106,16 @@ class Args:
         default=None,
         metadata={"help": "demonstrations .npz to reuse if it exists, else written there"},
     )
+    bc_anchor: int = field(
+        default=0,
+        metadata={"help": "cloning-loss minibatch steps after every PPO update (0: off)"},
+    )
+    start_offset: float = field(
+        default=3.0, metadata={"help": "training worlds: UAV start offset from formation (m)"}
+    )
+    start_heading_offset: float = field(
+        default=0.3, metadata={"help": "training worlds: start heading offset (rad)"}
+    )
     value_warmup: int = field(
         default=100_000,
         metadata={"help": "agent-steps training only the critic after cloning (actor frozen)"},
@@ -146,7 +158,8 @@ def make_args(**given: Any) -> Args:
     if given.get("resume") is not None:
         saved = json.loads((Path(given["resume"]) / "args.json").read_text())
         for k in ENV_FIELDS:
-            given[k] = saved[k]
+            if k in saved:  # runs of older versions lack the newer fields
+                given[k] = saved[k]
         given.setdefault("out", Path(given["resume"]))
     args = Args(**given)
     if args.out is None:
@@ -157,6 +170,8 @@ def make_args(**given: Any) -> Args:
             raise ValueError(f"--{name.replace('_', '-')} must be >= 1")
     if args.terminate_on_collision not in ("all", "agent"):
         raise ValueError("--terminate-on-collision must be 'all' or 'agent'")
+    if args.bc_anchor > 0 and args.bc_episodes < 1:
+        raise ValueError("--bc-anchor needs demonstrations: set --bc-episodes")
     if args.reward_shape not in ("exp", "cost"):
         raise ValueError(f"--reward-shape must be 'exp' or 'cost', got {args.reward_shape!r}")
     if args.dynamics not in ("integrator", "lag"):
@@ -181,6 +196,10 @@ def env_fn(args: Args):
             terminate_on_collision=args.terminate_on_collision,
             dynamics={"model": args.dynamics},
             reward={"shape": args.reward_shape, "collision_penalty": args.collision_penalty},
+            random_world={
+                "start_offset": args.start_offset,
+                "start_heading_offset": args.start_heading_offset,
+            },
         )
         if args.shield:
             import warnings
@@ -350,6 +369,10 @@ def train(args: Args):
     t0 = time.perf_counter()
     start = model.num_timesteps
     callbacks = [c for c in (ckpt, bar) if c is not None]
+    if args.bc_anchor > 0:
+        from train import bc
+
+        callbacks.append(bc.anchor_callback(*demonstrations(args), args.bc_anchor, seed=args.seed))
     phases = [(args.timesteps, ())]
     if bc_stats and args.value_warmup > 0:
         from train.bc import actor_parameters

@@ -286,6 +286,11 @@ class RandomWorldConfig:
     """Range of the target's cruise speed (m/s)."""
     target_turn_rate: float = 0.25
     """Maximum target turn rate (rad/s)."""
+    start_offset: float = 0.2
+    """Each UAV starts within +-start_offset (m, per axis) of its formation pose; larger values
+    (e.g. 3) give the off-formation starts of Table VI's second rows to learn from."""
+    start_heading_offset: float = 0.0
+    """Start heading within +-this (rad) of facing the car (0: facing it)."""
 
     def __post_init__(self) -> None:
         for name in ("n_obstacles", "size", "height", "target_speed"):
@@ -293,6 +298,10 @@ class RandomWorldConfig:
             _require(0 <= lo <= hi, f"{name} must be an ordered range (lo <= hi), got {(lo, hi)}")
         _require(self.extent > 0 and self.corridor > 0, "extent and corridor must be > 0")
         _require(self.target_turn_rate >= 0, "target_turn_rate must be >= 0")
+        _require(0 <= self.start_offset <= 5.0, "start_offset must be in [0, 5] m")
+        _require(
+            0 <= self.start_heading_offset <= 1.0, "start_heading_offset must be in [0, 1] rad"
+        )
 
 
 @dataclass(frozen=True)

@@ -20,7 +20,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from .config import DT, EnvConfig
-from .geometry import segment_hits_boxes
+from .geometry import segment_hits_boxes, world_to_cam_vec
+from .rewards import connected
 from .target import CAR_HALF_EXTENTS, Segment, fig11_program, random_program, sample_path
 
 PAPER_ALTITUDE = 0.85
@@ -121,6 +122,54 @@ def formation_references(n: int, x2: float = PAPER_REFERENCE[1]) -> np.ndarray:
     return np.array(refs)
 
 
+def _car_in_view(positions: np.ndarray, yaws: np.ndarray, cfg: EnvConfig) -> bool:
+    """Whether the car's centre projects into the inner 70 % of every UAV's image."""
+    cam = cfg.camera
+    for p, yaw in zip(positions, yaws, strict=True):
+        xc, yc, zc = world_to_cam_vec(np.array([0.0, 0.0, CAR_HALF_EXTENTS[2]]) - p, yaw)
+        if zc <= cam.near or abs(cam.fx * xc / zc) > 0.7 * cam.cu:
+            return False
+        if abs(cam.fy * yc / zc) > 0.7 * cam.cv:
+            return False
+    return True
+
+
+def _formation_start(
+    rng: np.random.Generator, refs: np.ndarray, offset: float, heading: float, cfg: EnvConfig
+) -> tuple[np.ndarray, np.ndarray]:
+    """Start poses near the formation: uniform offsets, redrawn until every UAV is 0.4 m above
+    the floor and R_s + 0.4 m from the others, the graph is connected and (beyond the default
+    0.2 m) every camera sees the car; the default's first draw always passes."""
+    n, depth = len(refs), 1.0 / refs[:, 2]
+    for _ in range(1000):
+        angle = refs[:, 3] + rng.uniform(-0.03, 0.03, n)
+        horizontal = depth + rng.uniform(-offset, offset, n)
+        positions = np.column_stack(
+            [
+                horizontal * np.cos(angle),
+                horizontal * np.sin(angle),
+                CAR_HALF_EXTENTS[2] + refs[:, 1] * depth + rng.uniform(-offset, offset, n),
+            ]
+        )
+        if offset > 0.2:  # also move along the ring
+            tangent = np.column_stack([-np.sin(angle), np.cos(angle)])
+            positions[:, :2] += tangent * rng.uniform(-offset, offset, (n, 1))
+        yaws = np.arctan2(-positions[:, 1], -positions[:, 0])
+        if heading > 0:
+            yaws = yaws + rng.uniform(-heading, heading, n)
+        if offset > 0.2 and not _car_in_view(positions, yaws, cfg):
+            continue
+        pair = np.linalg.norm(positions[:, None] - positions[None], axis=-1)
+        np.fill_diagonal(pair, np.inf)
+        if (
+            positions[:, 2].min() >= cfg.cbf.z_min + 0.4
+            and (n < 2 or pair.min() >= cfg.cbf.r_s + 0.4)
+            and connected(np.where(np.isinf(pair), 0.0, pair), np.ones(n, bool), cfg.cbf.r_c)
+        ):
+            return positions, yaws
+    raise ValueError(f"no feasible start within start_offset = {offset} m after 1000 draws")
+
+
 def random_layout(rng: np.random.Generator, cfg: EnvConfig) -> Layout:
     """A seeded cluttered world whose start is feasible.
 
@@ -134,17 +183,7 @@ def random_layout(rng: np.random.Generator, cfg: EnvConfig) -> Layout:
     path = sample_path(program, 0.0, 0.0, 0.0, min(duration, 120.0), 0.1)
 
     refs = formation_references(cfg.n_uavs)
-    depth = 1.0 / refs[:, 2]
-    angle = refs[:, 3] + rng.uniform(-0.03, 0.03, cfg.n_uavs)
-    horizontal = depth + rng.uniform(-0.2, 0.2, cfg.n_uavs)
-    positions = np.column_stack(
-        [
-            horizontal * np.cos(angle),
-            horizontal * np.sin(angle),
-            CAR_HALF_EXTENTS[2] + refs[:, 1] * depth + rng.uniform(-0.2, 0.2, cfg.n_uavs),
-        ]
-    )
-    yaws = np.arctan2(-positions[:, 1], -positions[:, 0])
+    positions, yaws = _formation_start(rng, refs, rw.start_offset, rw.start_heading_offset, cfg)
 
     centers, halves = [], []
     for _ in range(int(rng.integers(rw.n_obstacles[0], rw.n_obstacles[1] + 1))):
