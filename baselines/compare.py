@@ -61,16 +61,20 @@ class SB3Policy:
         return dict(zip(agents, actions, strict=True))
 
 
-def load_run(run_dir: Path) -> tuple[SB3Policy, dict]:
-    """The final model of a ``train.ppo`` run directory and its saved arguments."""
+def load_run(run_dir: Path, cloned: bool = False) -> tuple[SB3Policy, dict]:
+    """The final model of a ``train.ppo`` run directory and its saved arguments; with
+    ``cloned``, its behaviour-cloned policy before any PPO step (checkpoint 0)."""
     from stable_baselines3 import PPO
 
     run_dir = Path(run_dir)
     model_path = run_dir / "model.zip"
+    norm_path = run_dir / "vecnormalize.pkl"
+    if cloned:
+        model_path = run_dir / "checkpoints" / "ppo_0_steps.zip"
+        norm_path = run_dir / "checkpoints" / "ppo_vecnormalize_0_steps.pkl"
     if not model_path.exists():
         raise ValueError(f"{model_path} not found: expected the output directory of train.ppo")
     args = json.loads((run_dir / "args.json").read_text())
-    norm_path = run_dir / "vecnormalize.pkl"
     normalizer = None
     if norm_path.exists():
         with norm_path.open("rb") as f:  # a VecNormalize without its venv: normalize_obs only
@@ -264,6 +268,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     )
     ap.add_argument("--ppo", type=Path, help="train.ppo output directory (unshielded run)")
     ap.add_argument("--ppo-shield", type=Path, help="train.ppo output directory (shielded run)")
+    ap.add_argument(
+        "--cloned", type=Path, help="a train.ppo run with --bc-episodes: its cloned policy"
+    )
     ap.add_argument("--seeds", type=int, default=20, help="number of seeded random worlds")
     ap.add_argument("--scenarios", nargs="*", default=["A", "B", "C"], choices=["A", "B", "C"])
     ap.add_argument("--duration", type=float, default=60.0, help="episode length in s")
@@ -289,8 +296,14 @@ def main(argv: list[str] | None = None) -> list[dict]:
         if run_dir is not None:
             policy, run_args = load_run(run_dir)
             entrants.append((label, bool(run_args["shield"]), lambda env, p=policy: p))
+    if args.cloned is not None:
+        policy, run_args = load_run(args.cloned, cloned=True)
+        label = "cloned + shield" if run_args["shield"] else "cloned"
+        entrants.append((label, bool(run_args["shield"]), lambda env, p=policy: p))
     if not entrants:
-        raise SystemExit("nothing to compare: give --ppo and/or --ppo-shield (or drop --no-expert)")
+        raise SystemExit(
+            "nothing to compare: give --ppo, --ppo-shield or --cloned (or drop --no-expert)"
+        )
     worlds = eval_worlds(args.scenarios, args.seeds)
     runs = []
     bar = tqdm(total=len(worlds) * len(entrants), desc="compare", disable=args.no_progress)
@@ -314,6 +327,12 @@ def main(argv: list[str] | None = None) -> list[dict]:
         if run_dir is not None:
             info = json.loads((Path(run_dir) / "args.json").read_text())
             budget.append(f"{label}: {info.get('num_timesteps', '?')} agent-steps ({run_dir})")
+    if args.cloned is not None:
+        info = json.loads((Path(args.cloned) / "args.json").read_text())
+        budget.append(
+            f"cloned: {info.get('bc_samples', '?'):.0f} expert agent-steps "
+            f"({info.get('bc_episodes')} episodes), no PPO step ({args.cloned})"
+        )
     header = (
         f"Episodes of {args.duration:g} s, dynamics {args.dynamics}; random worlds: "
         f"{args.seeds} seeds.\n" + "".join(f"- {b}\n" for b in budget)

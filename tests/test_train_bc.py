@@ -14,6 +14,7 @@ import torch
 from stable_baselines3 import PPO
 from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
 
+from baselines.compare import load_run
 from tests.test_train_ppo import SMOKE
 from train import bc, ppo
 from uavtrack_env import uavtrack_v0
@@ -95,6 +96,14 @@ def test_value_warmup_freezes_the_actor_and_trains_the_critic(tmp_path):
     ]
     for a, b in zip(actor, before, strict=True):
         assert torch.equal(a, b)
+    # baselines.compare can evaluate the cloned policy (checkpoint 0) as its own entrant
+    policy, run_args = load_run(out, cloned=True)
+    assert run_args["bc_episodes"] == 1
+    obs = {"uav_0": np.zeros(policy.model.observation_space.shape, np.float32)}
+    with torch.no_grad():
+        x = torch.as_tensor(policy.obs_normalizer.normalize_obs(obs["uav_0"][None]))
+        expect = cloned.get_distribution(x).distribution.mean.numpy()[0]
+    np.testing.assert_allclose(policy(obs, {})["uav_0"], np.clip(expect, -1, 1), atol=1e-6)
     critic = [
         *trained.policy.value_net.parameters(),
         *trained.policy.mlp_extractor.value_net.parameters(),
