@@ -1,6 +1,6 @@
 """Median time of each expert stage and of the whole 3-UAV expert step, scenario A.
 
-    python benchmarks/expert_speed.py [--steps 800] [--solvers sqp ipopt]
+    python benchmarks/expert_speed.py [--steps 800] [--solvers sqp ipopt] [--jit]
 
 Runs the closed loop (lag dynamics, detector noise on) and prints per-UAV medians of the UKF,
 NMPC and CBF-QP, the whole expert step for 3 UAVs, the env step, and the real-time factor at 80 Hz
@@ -16,13 +16,15 @@ import time
 
 from uavtrack_env import uavtrack_v0
 from uavtrack_env.config import NMPCConfig
+from uavtrack_env.control import NMPCOptions
 from uavtrack_env.expert import ExpertPolicy
 
 
-def run(solver: str, steps: int) -> dict[str, float]:
+def run(solver: str, steps: int, jit: bool = False) -> dict[str, float]:
     env = uavtrack_v0.parallel_env(scenario="A", max_cycles=steps, dynamics={"model": "lag"})
     obs, infos = env.reset(seed=0)
-    expert = ExpertPolicy.from_env(env, nmpc=NMPCConfig(solver=solver))
+    options = NMPCOptions(jit=jit)  # one build per solver, shared by the UAVs
+    expert = ExpertPolicy.from_env(env, nmpc=NMPCConfig(solver=solver), nmpc_options=options)
     whole, env_t = [], []
     while env.agents:
         t0 = time.perf_counter()
@@ -42,20 +44,25 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--steps", type=int, default=800)
     ap.add_argument("--solvers", nargs="+", default=["sqp", "ipopt"])
+    ap.add_argument(
+        "--jit", action="store_true", help="also each solver with the NLP JIT-compiled (needs gcc)"
+    )
     args = ap.parse_args()
     print(f"machine: {platform.machine()}, python {platform.python_version()}, {args.steps} steps")
     period = 1e3 / 80.0
     rows = {s: run(s, args.steps) for s in args.solvers}
+    if args.jit:
+        rows.update({f"{s}+jit": run(s, args.steps, jit=True) for s in args.solvers})
     cols = ["ukf", "nmpc", "qp", "expert_step_3uav", "env_step"]
     print(
-        f"{'solver':>8} " + " ".join(f"{c:>17}" for c in cols) + f" {'RT x (expert)':>14}"
+        f"{'solver':>10} " + " ".join(f"{c:>17}" for c in cols) + f" {'RT x (expert)':>14}"
         f" {'RT x (+env)':>12}"
     )
     for s, m in rows.items():
         rt = period / m["expert_step_3uav"]
         rt_env = period / (m["expert_step_3uav"] + m["env_step"])
         print(
-            f"{s:>8} " + " ".join(f"{m[c]:>14.3f} ms" for c in cols) + f" {rt:>14.2f}"
+            f"{s:>10} " + " ".join(f"{m[c]:>14.3f} ms" for c in cols) + f" {rt:>14.2f}"
             f" {rt_env:>12.2f}"
         )
     if "ipopt" in rows and len(rows) > 1:

@@ -1,6 +1,6 @@
 """Median time per NMPC solve for each solver in a warm-started closed loop.
 
-Run: ``python benchmarks/nmpc_speed.py [--steps 400] [--repeats 2]``. The plant is eq. (15)
+Run: ``python benchmarks/nmpc_speed.py [--steps 400] [--repeats 2] [--jit]``. The plant is eq. (15)
 integrated with 4 RK4 substeps per 1/80 s step; the target moves with a slowly varying velocity.
 The first (cold, Ipopt) solve of every run is excluded from the median and reported apart.
 """
@@ -14,7 +14,8 @@ import time
 import numpy as np
 
 from uavtrack_env.config import DT, NMPCConfig
-from uavtrack_env.control import NMPC
+from uavtrack_env.control import NMPC, NMPCOptions
+from uavtrack_env.control import nmpc as nmpc_module
 from uavtrack_env.geometry import feature_rates
 
 REF = np.array([0.0, 0.0, 0.1, math.pi / 2])
@@ -34,6 +35,7 @@ def _plant(s: np.ndarray, u: np.ndarray, vq: np.ndarray, sub: int = 4) -> np.nda
 
 def run(solver: str, steps: int, **options) -> dict:
     """Closed loop from each start; returns per-solve times, iterations and failures."""
+    nmpc_module._BUILT.clear()  # time a full build, not the shared one
     t0 = time.perf_counter()
     ctrl = NMPC(REF, NMPCConfig(solver=solver), **options)
     build = time.perf_counter() - t0
@@ -64,12 +66,18 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--steps", type=int, default=400, help="closed-loop steps per start")
     parser.add_argument("--repeats", type=int, default=2, help="runs per solver (median taken)")
+    parser.add_argument(
+        "--jit", action="store_true", help="add sqp and rti with the NLP JIT-compiled (needs gcc)"
+    )
     args = parser.parse_args()
     variants = {
         "ipopt": ("ipopt", {}),
         "sqp (default)": ("sqp", {}),
         "rti": ("rti", {}),
     }
+    if args.jit:
+        variants["sqp + jit"] = ("sqp", {"options": NMPCOptions(jit=True)})
+        variants["rti + jit"] = ("rti", {"options": NMPCOptions(jit=True)})
     rows = {}
     for name, (solver, opts) in variants.items():
         runs = [run(solver, args.steps, **opts) for _ in range(args.repeats)]

@@ -266,3 +266,29 @@ def test_rti_and_acceleration_feedforward() -> None:
     # the target accelerates away: the plan accelerates along Z at about the same rate
     dvz = np.diff(res.predicted_u[5:40, 2]) / DT
     assert np.all(np.abs(dvz - 2.0) < 0.5), dvz
+
+
+def test_instances_share_one_build_without_crosstalk() -> None:
+    """Same settings share the built solver; interleaved closed loops equal separate ones."""
+    ref2 = np.array([0.0, 0.188, 1 / 7, -math.pi / 2])
+    a, b = NMPC(REF), NMPC(ref2)
+    assert a._solver is b._solver and a._cold_solver is b._cold_solver
+    assert NMPC(REF, error_signal=False)._solver is not a._solver  # other options, other build
+    vq = np.array([0.4, 0.0, 0.1])
+
+    def loop(ctrls):
+        s = {id(c): np.array([0.2, -0.1, 0.12, c.reference[3] + 0.3]) for c in ctrls}
+        out = {id(c): [] for c in ctrls}
+        for _ in range(15):
+            for c in ctrls:
+                u = c.solve(s[id(c)], vq).u
+                out[id(c)].append(u)
+                s[id(c)] = s[id(c)] + DT * np.asarray(feature_rates(s[id(c)], u, vq))
+        return out
+
+    together = loop([a, b])
+    a.reset()
+    b.reset()
+    alone = {**loop([a]), **loop([b])}
+    for key in together:
+        np.testing.assert_array_equal(np.array(together[key]), np.array(alone[key]))

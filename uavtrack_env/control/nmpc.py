@@ -99,6 +99,17 @@ class NMPCResult:
     """Error signal eps_k of eq. (16) used in this solve."""
 
 
+_BUILT: dict[tuple, dict] = {}
+"""Built NLPs by (cfg, limits, bounds, options): every UAV with the same settings shares one
+(the reference enters as a parameter; the warm start lives in the NMPC instance), so a fleet
+pays the build, or the JIT compile, once per process."""
+_BUILT_ATTRS = (
+    "_F", "_ix", "_iu", "_isig", "_lbg", "_ubg", "_lbx", "_ubx", "_nw", "_ng", "_shift_w",
+    "_shift_g", "_nlp", "_cold_solver", "_solver", "_solver_plugin", "_lbx_dm", "_ubx_dm",
+    "_lbg_dm", "_ubg_dm",
+)  # fmt: skip
+
+
 def _vec(name: str, value, n: int) -> np.ndarray:
     arr = np.asarray(value, dtype=float)
     if arr.shape != (n,):
@@ -153,8 +164,13 @@ class NMPC:
             raise TypeError(f"pass either options or keyword overrides, not both: {overrides}")
         self.cfg, self.limits, self.bounds, self.options = cfg, limits, bounds, options
         self.N = cfg.horizon
-        self._F = _discrete_model(cfg.dt, options.integrator)
-        self._build()
+        key = (cfg, limits, bounds, options)
+        built = _BUILT.get(key)
+        if built is None:
+            self._F = _discrete_model(cfg.dt, options.integrator)
+            self._build()
+            built = _BUILT[key] = {k: self.__dict__[k] for k in _BUILT_ATTRS}
+        self.__dict__.update(built)
         self.reset()
 
     # ------------------------------------------------------------------ build
