@@ -134,14 +134,15 @@ def _cloning_loss(model, normalizer, obs, actions) -> float:
 
 
 def test_anchor_steps_keep_fitting_the_demonstrations(tmp_path):
-    """With PPO's own step size at 0, only the anchor moves the actor: the loss must fall."""
+    """With PPO's own step size at 0, only the anchor moves the actor: the loss must fall (it
+    waits out the critic warm-up, whose frozen actor it must not touch)."""
     import pickle
 
     out = tmp_path / "run"
     ppo.main(
         ["--no-shield", "--timesteps", "768", "--out", str(out), *SMOKE]
-        + ["--bc-episodes", "1", "--bc-epochs", "1", "--value-warmup", "0"]
-        + ["--learning-rate", "0", "--bc-anchor", "20"]
+        + ["--bc-episodes", "1", "--bc-epochs", "1", "--value-warmup", "384"]
+        + ["--learning-rate", "0", "--bc-anchor", "40"]
     )
     with np.load(out / "demos.npz") as d:
         obs, actions = d["obs"], d["actions"]

@@ -152,9 +152,17 @@ def anchor_callback(
             self.updates = self.model._n_updates
 
         def _on_rollout_start(self) -> None:
+            self._anchor()
+
+        def _on_training_end(self) -> None:
+            self._anchor()
+
+        def _anchor(self) -> None:
             if self.model._n_updates == self.updates:  # no PPO update since the last call
                 return
             self.updates = self.model._n_updates
+            if not self.model.policy.log_std.requires_grad:  # actor frozen (critic warm-up)
+                return
             env = self.model.get_env()
             o = env.normalize_obs(obs) if isinstance(env, VecNormalize) else obs
             x = torch.as_tensor(o, dtype=torch.float32)
