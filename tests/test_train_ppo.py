@@ -52,6 +52,14 @@ def test_smoke_checkpoint_and_resume(tmp_path, shield):
     _check_metrics(out, shield)
     before = PPO.load(out / "model.zip", device="cpu").num_timesteps
     assert before == 768
+    counted = json.loads((out / "args.json").read_text())["training_violations"]
+    assert 0 < counted["agent_steps"] <= 768
+    assert 0 <= counted["collision"] <= counted["agent_steps"]
+    if shield:  # the shield's guarantee, also in training
+        assert counted["collision"] == 0 and counted["disconnection"] == 0
+        assert counted["shield_active"] > 0
+    else:
+        assert counted["shield_active"] == 0
     if not shield:
         return
     # resume: the env settings come from args.json, the step count continues

@@ -12,6 +12,19 @@ statistics), ``model.zip`` + ``vecnormalize.pkl`` (final), ``args.json`` and ``m
 (a list of evaluation episodes in the schema of ``baselines/evaluate.py`` plus
 ``violations_per_1000_steps`` and ``shield_intervention_rate``). Step counts are agent-steps
 (SB3's ``num_timesteps``: rows x vector steps).
+
+Reward: ``exp(-c)`` per step (c the stage cost of eq. 18) minus a collision penalty, so that
+ending an episode by crashing never pays (with the env's default ``-c``, unshielded PPO learned
+to crash within 0.4 s). Training worlds start the UAVs up to ``--start-offset`` m off formation.
+
+Warm start from the expert (``--bc-episodes N``): N expert episodes are recorded (cached in
+``--bc-demos``), the actor is fitted to them (checkpoint 0), the critic alone trains for
+``--value-warmup`` steps, then PPO fine-tunes, optionally with ``--bc-anchor`` cloning steps
+after every update. The recipe used for the README's table:
+
+    python -m train.ppo --shield --bc-episodes 60 --bc-anchor 10 --value-warmup 100000 \
+        --target-kl 0.01 --learning-rate 5e-5 --log-std-init -3.5 --timesteps 800000 \
+        --out runs/bcppo-shield
 """
 
 from __future__ import annotations
@@ -245,6 +258,35 @@ def last_checkpoint(run_dir: Path) -> tuple[Path, Path | None]:
     return path, norm if norm.exists() else None
 
 
+def safety_counter():
+    """SB3 callback counting violation agent-steps (and shield interventions) during training;
+    TensorBoard ``safety/*``; ``.totals`` for args.json."""
+    from stable_baselines3.common.callbacks import BaseCallback
+
+    class SafetyCounter(BaseCallback):
+        def __init__(self) -> None:
+            super().__init__()
+            self.totals = {"agent_steps": 0, "collision": 0, "disconnection": 0, "occlusion": 0}
+            self.totals["shield_active"] = 0
+
+        def _on_step(self) -> bool:
+            for info in self.locals["infos"]:
+                v = info.get("violations")
+                if v is None:  # absorbing row of a finished agent
+                    continue
+                self.totals["agent_steps"] += 1
+                for k in ("collision", "disconnection", "occlusion"):
+                    self.totals[k] += bool(v[k])
+                self.totals["shield_active"] += bool(info.get("shield", {}).get("active", False))
+            return True
+
+        def _on_rollout_end(self) -> None:
+            for k, v in self.totals.items():
+                self.logger.record(f"safety/{k}", v)
+
+    return SafetyCounter()
+
+
 def save_checkpoint(model, vec, ckdir: Path) -> None:
     """Model and VecNormalize statistics under CheckpointCallback's names (for ``--resume``)."""
     from stable_baselines3.common.vec_env import VecNormalize
@@ -368,7 +410,8 @@ def train(args: Args):
     bar, rich_bar = _progress_callback(args.progress)
     t0 = time.perf_counter()
     start = model.num_timesteps
-    callbacks = [c for c in (ckpt, bar) if c is not None]
+    safety = safety_counter()
+    callbacks = [c for c in (ckpt, bar, safety) if c is not None]
     if args.bc_anchor > 0:
         from train import bc
 
@@ -406,6 +449,7 @@ def train(args: Args):
         train_seconds=elapsed,
         agent_steps_per_s=(model.num_timesteps - start) / elapsed,
         **bc_stats,
+        training_violations=safety.totals,  # agent-steps of this call
     )
     (out / "args.json").write_text(json.dumps(saved, indent=2))
     return model, vec
