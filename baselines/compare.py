@@ -271,6 +271,12 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     ap.add_argument(
         "--cloned", type=Path, help="a train.ppo run with --bc-episodes: its cloned policy"
     )
+    ap.add_argument(
+        "--merge",
+        type=Path,
+        nargs="+",
+        help="only merge the metrics.json of earlier compare runs (e.g. entrants run in parallel)",
+    )
     ap.add_argument("--seeds", type=int, default=20, help="number of seeded random worlds")
     ap.add_argument("--scenarios", nargs="*", default=["A", "B", "C"], choices=["A", "B", "C"])
     ap.add_argument("--duration", type=float, default=60.0, help="episode length in s")
@@ -284,8 +290,25 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     return args
 
 
+def merge(dirs: list[Path], out: Path) -> list[dict]:
+    """One table from several compare output directories (their episodes and budget lines)."""
+    runs, header = [], []
+    for d in dirs:
+        runs += json.loads((Path(d) / "metrics.json").read_text())
+        lines = (Path(d) / "compare.md").read_text().split("\n\n")[0].splitlines()
+        header += [ln for ln in lines if ln not in header]
+    md = comparison_table(runs)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "compare.md").write_text("\n".join(header) + "\n\n" + md + "\n")
+    (out / "metrics.json").write_text(json.dumps(runs, indent=2))
+    print("\n".join(header) + "\n\n" + md)
+    return runs
+
+
 def main(argv: list[str] | None = None) -> list[dict]:
     args = parse_args(argv)
+    if args.merge:
+        return merge(args.merge, args.out)
     eargs = env_args(args.dynamics)
     steps = max(1, round(args.duration / DT))
     entrants: list[tuple[str, bool, Callable[[Any], Policy]]] = []

@@ -112,3 +112,21 @@ def test_episode_counts_on_a_ground_dive():
     md = comparison_table([m, s]).splitlines()
     assert len(md) == 4 and "| dive | A0 | 1 |" in md[2] and "| 3 |" in md[2]
     assert math.isclose(s["duration_s"], 1.0)
+
+
+def test_compare_cli_and_merge(tmp_path):
+    """The compare CLI on a tiny budget writes its table; --merge joins two such runs."""
+    from baselines import compare
+
+    common = ["--duration", "0.1", "--no-progress", "--seeds", "1"]
+    a = compare.main([*common, "--scenarios", "A", "--out", str(tmp_path / "a")])
+    b = compare.main([*common, "--scenarios", "--out", str(tmp_path / "b")])
+    assert [(m["scenario"], m["init"]) for m in a] == [("A", 0), ("A", 1), ("random", 0)]
+    assert [m["scenario"] for m in b] == ["random"]
+    merged = compare.main(["--merge", str(tmp_path / "a"), str(tmp_path / "b"),
+                           "--out", str(tmp_path / "m")])  # fmt: skip
+    assert merged == a + b
+    table = (tmp_path / "m" / "compare.md").read_text()
+    assert "| expert | A0 | 1 |" in table and "| expert | random | 2 |" in table
+    with pytest.raises(SystemExit):
+        compare.main([*common, "--no-expert", "--out", str(tmp_path / "c")])
