@@ -165,6 +165,21 @@ def test_process_model_one_step_error_is_second_order(h):
     assert 3.0 < e1 / e2 < 5.0  # halving dt quarters the local error: second order
 
 
+def test_vectorized_sigma_points_equal_filterpys_bit_for_bit():
+    from filterpy.kalman import MerweScaledSigmaPoints
+
+    from uavtrack_env.estimation.ukf import VectorizedSigmaPoints, safe_sqrt
+
+    rng = np.random.default_rng(5)
+    A = rng.standard_normal((10, 10))
+    P, x = A @ A.T + np.eye(10), rng.standard_normal(10)
+    ref = MerweScaledSigmaPoints(10, 0.3, 2.0, 0.0, sqrt_method=safe_sqrt).sigma_points(x, P)
+    fast = VectorizedSigmaPoints(10, 0.3, 2.0, 0.0, sqrt_method=safe_sqrt).sigma_points(x, P)
+    np.testing.assert_array_equal(fast, ref)
+    with pytest.raises(ValueError, match="expected size"):
+        VectorizedSigmaPoints(10, 0.3, 2.0, 0.0).sigma_points(x[:9], P)
+
+
 def test_vectorized_filter_equals_plain_filterpy():
     """The vectorised subclass gives filterpy's predict/update to 1e-9, also across psi = pi."""
     rng = np.random.default_rng(3)

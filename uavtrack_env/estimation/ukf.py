@@ -300,6 +300,19 @@ def _angle_safe_ut(
     return unscented_transform(s, Wm, Wc, noise_cov, circular_mean, None)
 
 
+class VectorizedSigmaPoints(MerweScaledSigmaPoints):
+    """filterpy's Merwe points with the 2n rows built in one array operation (the same numbers:
+    filterpy's loop computes x - (-U_k) and x - U_k with plain subtraction)."""
+
+    def sigma_points(self, x, P) -> np.ndarray:
+        if self.n != np.size(x):
+            raise ValueError(f"expected size(x) {self.n}, but size is {np.size(x)}")
+        lambda_ = self.alpha**2 * (self.n + self.kappa) - self.n
+        U = self.sqrt((lambda_ + self.n) * np.atleast_2d(P))
+        x = np.asarray(x, dtype=float)
+        return np.concatenate([x[None], x + U, x - U])
+
+
 class VectorizedUKF(UnscentedKalmanFilter):
     """filterpy's UKF with fx and hx applied to all sigma points in one numpy call each.
 
@@ -343,7 +356,8 @@ def make_filter(
     # Sigma points use plain subtraction: psi of a sigma point may leave (-pi, pi] by a little,
     # which is harmless (fx wraps it, circular means and wrapped residuals absorb it) and saves
     # 20 Python calls per sigma-point set.
-    points = MerweScaledSigmaPoints(DIM_X, cfg.alpha, cfg.beta, cfg.kappa, sqrt_method=safe_sqrt)
+    kind = VectorizedSigmaPoints if vectorized else MerweScaledSigmaPoints
+    points = kind(DIM_X, cfg.alpha, cfg.beta, cfg.kappa, sqrt_method=safe_sqrt)
 
     def hx(x: np.ndarray, yaw: float) -> np.ndarray:
         return measurement_model(x, yaw, camera, x3_min)
