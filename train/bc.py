@@ -86,6 +86,8 @@ def pretrain(
     """
     import torch
 
+    if epochs < 1:
+        raise ValueError(f"epochs must be >= 1, got {epochs}")
     if len(obs) != len(actions) or len(obs) < batch_size:
         raise ValueError(f"need >= {batch_size} (obs, action) pairs, got {len(obs)}")
     if normalizer is not None:

@@ -266,8 +266,9 @@ def safety_counter():
     class SafetyCounter(BaseCallback):
         def __init__(self) -> None:
             super().__init__()
-            self.totals = {"agent_steps": 0, "collision": 0, "disconnection": 0, "occlusion": 0}
-            self.totals["shield_active"] = 0
+            self.totals = dict.fromkeys(
+                ("agent_steps", "collision", "disconnection", "occlusion", "shield_active"), 0
+            )
 
         def _on_step(self) -> bool:
             for info in self.locals["infos"]:
@@ -385,10 +386,11 @@ def train(args: Args):
             verbose=0,
         )
     bc_stats: dict = {}
-    if args.resume is None and args.bc_episodes > 0:
+    demos = demonstrations(args) if args.bc_episodes > 0 else None  # loaded once
+    if args.resume is None and demos is not None:
         from train import bc
 
-        obs, actions = demonstrations(args)
+        obs, actions = demos
         normalizer = vec if isinstance(vec, VecNormalize) else None
         bc_stats = bc.pretrain(
             model,
@@ -415,7 +417,7 @@ def train(args: Args):
     if args.bc_anchor > 0:
         from train import bc
 
-        callbacks.append(bc.anchor_callback(*demonstrations(args), args.bc_anchor, seed=args.seed))
+        callbacks.append(bc.anchor_callback(*demos, args.bc_anchor, seed=args.seed))
     phases = [(args.timesteps, ())]
     if bc_stats and args.value_warmup > 0:
         from train.bc import actor_parameters

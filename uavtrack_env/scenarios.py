@@ -160,11 +160,11 @@ def _formation_start(
         if offset > 0.2 and not _car_in_view(positions, yaws, cfg):
             continue
         pair = np.linalg.norm(positions[:, None] - positions[None], axis=-1)
-        np.fill_diagonal(pair, np.inf)
+        apart = n < 2 or pair[~np.eye(n, dtype=bool)].min() >= cfg.cbf.r_s + 0.4
         if (
             positions[:, 2].min() >= cfg.cbf.z_min + 0.4
-            and (n < 2 or pair.min() >= cfg.cbf.r_s + 0.4)
-            and connected(np.where(np.isinf(pair), 0.0, pair), np.ones(n, bool), cfg.cbf.r_c)
+            and apart
+            and connected(pair, np.ones(n, bool), cfg.cbf.r_c)
         ):
             return positions, yaws
     raise ValueError(f"no feasible start within start_offset = {offset} m after 1000 draws")
