@@ -46,6 +46,11 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     ap.add_argument("--dynamics", default="lag", choices=["integrator", "lag"])
     ap.add_argument("--no-noise", action="store_true", help="noiseless detector")
     ap.add_argument("--no-cbf", action="store_true", help="expert without the CBF-QP")
+    ap.add_argument(
+        "--no-viewpoint",
+        action="store_true",
+        help="keep the paper's constant x2* (no climbing ahead of tall boxes)",
+    )
     ap.add_argument("--gamma-o", type=float, default=None, help="occlusion CBF rate (Fig. 20: 0.5)")
     ap.add_argument(
         "--occlusion-model",
@@ -87,7 +92,10 @@ def _make_policy(args: argparse.Namespace, env):
         from uavtrack_env.expert import ExpertPolicy
 
         nmpc = NMPCConfig(solver=args.nmpc_solver) if args.nmpc_solver else None
-        return ExpertPolicy.from_env(env, use_cbf=not args.no_cbf, nmpc=nmpc)
+        from uavtrack_env.control.viewpoint import ViewpointConfig
+
+        viewpoint = ViewpointConfig(enabled=not args.no_viewpoint)
+        return ExpertPolicy.from_env(env, use_cbf=not args.no_cbf, nmpc=nmpc, viewpoint=viewpoint)
     base = {"servo": VisualServoPolicy, "hover": HoverPolicy, "random": RandomPolicy}[args.policy]()
     return lambda obs, infos: {a: base(a, obs[a]) for a in obs}
 
@@ -125,6 +133,7 @@ def run_episode(args: argparse.Namespace, scenario: str, init: int, out: Path) -
         "policy": args.policy,
         "dynamics": args.dynamics,
         "cbf": not args.no_cbf,
+        "viewpoint": not args.no_viewpoint,
         "uavs": rec.summary(),
         "timing_ms": timing,
         "initial_conditions": {

@@ -126,8 +126,8 @@ def test_target_out_of_image_not_detected(make_env, turn):
 
 
 # ------------------------------------------------------------------------- detector
-def _hand_bbox_centre(env, i: int) -> tuple[float, float]:
-    """Centre of the box around the car's 8 projected corners, clipped to the 640 x 480 image."""
+def _hand_corners(env, i: int) -> tuple[list[float], list[float]]:
+    """Pixel coordinates (u, v) of the car's 8 projected corners, not clipped."""
     c, h, y = env.target.center(), env.target.heading, env.yaw[i]
     us, vs = [], []
     for sx in (-1, 1):
@@ -143,9 +143,16 @@ def _hand_bbox_centre(env, i: int) -> tuple[float, float]:
                 X = d[0] * math.sin(y) - d[1] * math.cos(y)
                 Z = d[0] * math.cos(y) + d[1] * math.sin(y)
                 assert Z > 0.1
-                us.append(min(max(CU + F * X / Z, 0.0), 640.0))
-                vs.append(min(max(CV + F * -d[2] / Z, 0.0), 480.0))
-    return 0.5 * (min(us) + max(us)), 0.5 * (min(vs) + max(vs))
+                us.append(CU + F * X / Z)
+                vs.append(CV + F * -d[2] / Z)
+    return us, vs
+
+
+def _hand_bbox_centre(env, i: int) -> tuple[float, float]:
+    """Centre of the box around the car's 8 projected corners, clipped to the 640 x 480 image."""
+    us, vs = _hand_corners(env, i)
+    us, vs = np.clip(us, 0.0, 640.0), np.clip(vs, 0.0, 480.0)
+    return 0.5 * (us.min() + us.max()), 0.5 * (vs.min() + vs.max())
 
 
 def test_noiseless_detection_matches_projection_of_car_centre(make_env):
@@ -181,6 +188,26 @@ def test_noiseless_detection_matches_projection_of_car_centre(make_env):
         acts = {a: 0.08 * rng.uniform(-1, 1, 4) for a in env.agents}
         _, _, _, _, infos = env.step(acts)
     assert checked >= 25
+
+
+def test_truncated_flags_mark_a_box_cut_by_the_image_border(make_env):
+    """truncated_u / truncated_v: some projected corner lies outside the image along U / V."""
+    env = make_env(detector=DetectorConfig.noiseless())
+    env.reset(seed=0)
+    seen = set()
+    for z in (1.5, 3.0, 3.5, 4.0, 4.5):
+        for yaw in (0.0, 0.5):
+            _teleport(env, 1, [-6.0, 0.0, z], yaw)
+            _, _, _, _, infos = env.step(_zeros(env))
+            m = infos["uav_1"]["measurement"]
+            if not m["detected"]:
+                assert not (m["truncated_u"] or m["truncated_v"])
+                continue
+            us, vs = _hand_corners(env, 1)
+            assert m["truncated_u"] == (min(us) < 0 or max(us) > 640)
+            assert m["truncated_v"] == (min(vs) < 0 or max(vs) > 480)
+            seen.add((m["truncated_u"], m["truncated_v"]))
+    assert {(False, False), (False, True), (True, False)} <= seen, seen
 
 
 def test_detector_noise_std_matches_config(make_env):

@@ -233,6 +233,29 @@ def test_converges_and_recovers_from_dropout(seed):
     assert _spd(est.ukf.P)
 
 
+def test_a_box_coordinate_cut_by_the_border_is_ignored():
+    """From 3 s on the measured v is pulled 40 px inwards, as a box cut by the image border is.
+    Unflagged, the estimate follows it; flagged ``truncated_v``, x2 keeps following the UAV's own
+    motion (error < 5 px) while u is still used."""
+    err = {}
+    for flag in (False, True):
+        sim = Sim(0)
+        est = TargetEstimator(CAM, UKFConfig(), DT)
+        est.reset(sim.measure(), sim.p, sim.yaw)
+        for _ in range(round(4.0 / DT)):
+            u = sim.advance()
+            m = sim.measure()
+            if sim.t > 3.0:
+                m = dataclasses.replace(m, v=m.v - 40.0, truncated_v=flag)
+            e = est.step(u, sim.p, sim.yaw, m)
+        s = sim.features()
+        err[flag] = (CAM.fx * abs(e.s[0] - s[0]), CAM.fy * abs(e.s[1] - s[1]))
+    assert err[False][1] > 20.0
+    assert err[True][1] < 5.0 and err[True][0] < 5.0
+    with pytest.raises(ValueError, match="truncated_variance_scale"):
+        UKFConfig(truncated_variance_scale=0.5)
+
+
 def test_psi_measurements_across_the_wrap_do_not_blow_up():
     """UAV straight behind the target: psi = pi, noisy measurements alternate sign at +-pi."""
     r, _ = run(4, 6.0, p0=(-8.0, -0.5, 4.0), vq=(1.5, 0.0, 0.0))

@@ -361,6 +361,8 @@ class UAVTrackEnv(ParallelEnv):
             "depth": float(det.depth[i]) if ok else None,
             "psi": float(det.psi[i]) if ok else None,
             "visible_fraction": float(det.visible_fraction[i]),
+            "truncated_u": ok and bool(det.truncated[i, 0]),
+            "truncated_v": ok and bool(det.truncated[i, 1]),
         }
 
     def _truth(

@@ -12,8 +12,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .config import CBFConfig, NMPCConfig
+from .config import DT, CBFConfig, NMPCConfig
 from .control import NMPC, NMPCOptions, NMPCResult
+from .control.viewpoint import ViewpointConfig, ViewpointPlanner
 from .estimation import UKFConfig
 from .geometry import world_to_cam_vec
 from .onboard import OnboardTracker, safety_context
@@ -27,6 +28,7 @@ class AgentState:
 
     tracker: OnboardTracker
     nmpc: NMPC
+    viewpoint: ViewpointPlanner
     last_nmpc: NMPCResult | None = None
     last_report: ShieldReport | None = None
     last_u: np.ndarray = field(default_factory=lambda: np.zeros(4))
@@ -36,7 +38,9 @@ class ExpertPolicy:
     """UKF -> NMPC -> CBF-QP for every agent; ``policy(obs, infos) -> {agent: action}``.
 
     Actions are the env's normalised [-1, 1]^4. ``timings[stage]`` holds per-agent-step wall
-    times (s) of 'ukf', 'nmpc' and 'qp'. ``use_cbf=False`` skips the QP (the ``--no-cbf`` ablation).
+    times (s) of 'ukf', 'nmpc' (with the viewpoint layer) and 'qp'. ``use_cbf=False`` skips the
+    QP (the ``--no-cbf`` ablation); ``viewpoint`` configures the x2* layer that looks over tall
+    boxes (not in the paper; `uavtrack_env.control.viewpoint`).
     """
 
     def __init__(
@@ -51,6 +55,7 @@ class ExpertPolicy:
         ukf: UKFConfig | None = None,
         cbf: CBFConfig | None = None,
         use_cbf: bool = True,
+        viewpoint: ViewpointConfig | None = None,
         qp_solver: str | None = None,
         **shield_options,
     ) -> None:
@@ -70,6 +75,13 @@ class ExpertPolicy:
                 tracker=OnboardTracker(env_config.camera, ukf),
                 nmpc=NMPC(
                     references[a], nmpc_cfg, env_config.limits, env_config.features, nmpc_options
+                ),
+                viewpoint=ViewpointPlanner(
+                    references[a][1],
+                    self.obstacle_centers,
+                    self.obstacle_half_extents,
+                    viewpoint or ViewpointConfig(),
+                    DT,
                 ),
             )
             for a in agents
@@ -98,6 +110,8 @@ class ExpertPolicy:
             st.last_nmpc, st.last_report = None, None
             st.last_u = np.zeros(4)
             st.nmpc.reset()
+            st.viewpoint.reset()
+            st.nmpc.reference[1] = st.viewpoint.x2
         self.timings.clear()
 
     def __call__(self, obs: dict, infos: dict[str, dict]) -> dict[str, np.ndarray]:
@@ -112,6 +126,10 @@ class ExpertPolicy:
             return np.zeros(4, np.float32)  # nothing seen yet: hover
         yaw = info["own"]["yaw"]
         t1 = time.perf_counter()
+        own = info["own"]["position"]
+        st.nmpc.reference[1] = st.viewpoint.update(
+            est.target_position, est.target_velocity, own, est.s[1], 1.0 / est.s[2]
+        )
         aq_cam = world_to_cam_vec(est.target_acceleration, yaw)
         st.last_nmpc = res = st.nmpc.solve(est.s, est.vq_cam, aq_cam, u_applied=st.last_u)
         u = res.u

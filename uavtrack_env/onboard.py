@@ -29,7 +29,11 @@ class OnboardTracker:
         """Advance the filter with this step's info (measurement and own motion)."""
         own, m = info["own"], info["measurement"]
         pos, yaw = own["position"], own["yaw"]
-        meas = Measurement(m["u"], m["v"], m["depth"], m["psi"]) if m["detected"] else None
+        meas = None
+        if m["detected"]:
+            meas = Measurement(
+                m["u"], m["v"], m["depth"], m["psi"], m["truncated_u"], m["truncated_v"]
+            )
         if self.estimate is None:
             if meas is not None:
                 self.estimate = self.estimator.reset(meas, pos, yaw)

@@ -44,6 +44,9 @@ class Detections:
     box_center: np.ndarray
     """(n, 2) noise-free bounding-box centre (px), clipped to the image; the projection of the
     car's centre where a corner lies behind the camera."""
+    truncated: np.ndarray
+    """(n, 2) bool: the box is cut by the image's left/right (column 0) or top/bottom (column 1)
+    border, so its centre is biased towards the image along that axis."""
 
 
 def _unit_grid(counts: tuple[int, int, int]) -> np.ndarray:
@@ -119,6 +122,7 @@ class Detector:
         all_front = front[:, cs].all(axis=1)
         cu = np.clip(pu[:, cs], 0.0, cam.width)
         cv = np.clip(pv[:, cs], 0.0, cam.height)
+        truncated = np.column_stack([(cu != pu[:, cs]).any(axis=1), (cv != pv[:, cs]).any(axis=1)])
         box_u = 0.5 * (cu.min(axis=1) + cu.max(axis=1))
         box_v = 0.5 * (cv.min(axis=1) + cv.max(axis=1))
 
@@ -137,6 +141,7 @@ class Detector:
             psi=np.where(detected, wrap_angle(psi + cfg.psi_noise_std * noise[:, 3]), nan),
             visible_fraction=visible,
             blocked_fraction=blocked,
+            truncated=truncated,
             true_features=true,
             in_front=in_front,
             box_center=np.column_stack(

@@ -68,6 +68,10 @@ class UKFConfig:
     """Std of the depth d = Z (m), v_k of eq. (11)."""
     psi_std: float = 0.03
     """Std of the measured relative angle psi (rad), v_k of eq. (11)."""
+    truncated_variance_scale: float = 1e6
+    """Multiplier of the pixel variance of a box coordinate cut by the image border (not in the
+    paper): the update then all but ignores it, and the estimate along that axis follows the
+    UAV's own motion instead of a centre pulled towards the image."""
     gps_std: float = 0.05
     """Std of the UAV's own position r_c (m), v_k of eq. (11)."""
     init_position_std: float = 0.5
@@ -99,6 +103,9 @@ class UKFConfig:
     """Refit every this many detected steps (the fit costs ~30 us; 20 Hz is plenty)."""
     max_target_accel: float = 3.0
     """Norm clamp (m/s^2) of the fitted acceleration fed to the dropout prediction (Fig. 5)."""
+    planar_target: bool = True
+    """The target moves in the X-Y plane (section VI-A): the dropout prediction (Remark 2) keeps
+    its height, with zero vertical velocity and acceleration."""
     dropout_use_fit_velocity: bool = True
     """At the start of a dropout, replace the mean of V_q by the fitted velocity (Fig. 5)."""
     vectorized: bool = True
@@ -138,6 +145,10 @@ class UKFConfig:
             raise ValueError("need fit_order >= 0, fit_min_samples > fit_order, fit_every >= 1")
         if self.fit_velocity_weight < 0:
             raise ValueError("fit_velocity_weight must be >= 0")
+        if not self.truncated_variance_scale >= 1:
+            raise ValueError(
+                f"truncated_variance_scale must be >= 1, got {self.truncated_variance_scale}"
+            )
 
 
 @dataclass(frozen=True)
@@ -152,6 +163,10 @@ class Measurement:
     """d = Z, optical-axis depth of the target centre (m), so x3 = 1/d (eq. 8)."""
     psi: float
     """Relative angle of eq. (4) (rad); wrapped by the filter."""
+    truncated_u: bool = False
+    """The box touches the left or right image border: its centre u is biased inwards."""
+    truncated_v: bool = False
+    """The box touches the top or bottom image border: its centre v is biased inwards."""
 
     def __post_init__(self) -> None:
         vals = (self.u, self.v, self.depth, self.psi)
@@ -562,6 +577,9 @@ class TargetEstimator:
             self._accel = self._clamp_accel(fit)
             if fit is not None and self.cfg.dropout_use_fit_velocity:
                 self.ukf.x[7:10] = fit.velocity
+            if self.cfg.planar_target:
+                self._accel[2] = 0.0
+                self.ukf.x[9] = 0.0
         accel = self._accel if z is None else np.zeros(3)
 
         self.ukf.predict(dt=self.dt, u=u, yaw=self._yaw, accel=accel)
@@ -572,7 +590,13 @@ class TargetEstimator:
         if z is None:
             self._since += 1
         else:
-            self.ukf.update(z, yaw=yaw)
+            R = None
+            if meas.truncated_u or meas.truncated_v:
+                R = self.ukf.R.copy()
+                for i, cut in enumerate((meas.truncated_u, meas.truncated_v)):
+                    if cut:
+                        R[i, i] *= self.cfg.truncated_variance_scale
+            self.ukf.update(z, R=R, yaw=yaw)
             self._tidy()
             self._since = 0
             self._record()
