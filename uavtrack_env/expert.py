@@ -21,6 +21,9 @@ from .onboard import OnboardTracker, safety_context
 from .safety import SafetyFilter, ShieldReport
 from .safety.margins import ShieldMargins, shield_cbf
 
+EXPERT_UKF = UKFConfig(truncated_variance_scale=1e6)
+"""The expert's filter: a box coordinate cut by the image border is ignored (see UKFConfig)."""
+
 
 @dataclass
 class AgentState:
@@ -72,7 +75,7 @@ class ExpertPolicy:
         nmpc_cfg = nmpc or NMPCConfig()
         self.agents: dict[str, AgentState] = {
             a: AgentState(
-                tracker=OnboardTracker(env_config.camera, ukf),
+                tracker=OnboardTracker(env_config.camera, ukf or EXPERT_UKF),
                 nmpc=NMPC(
                     references[a], nmpc_cfg, env_config.limits, env_config.features, nmpc_options
                 ),

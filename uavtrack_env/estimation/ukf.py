@@ -68,10 +68,12 @@ class UKFConfig:
     """Std of the depth d = Z (m), v_k of eq. (11)."""
     psi_std: float = 0.03
     """Std of the measured relative angle psi (rad), v_k of eq. (11)."""
-    truncated_variance_scale: float = 1e6
+    truncated_variance_scale: float = 1.0
     """Multiplier of the pixel variance of a box coordinate cut by the image border (not in the
-    paper): the update then all but ignores it, and the estimate along that axis follows the
-    UAV's own motion instead of a centre pulled towards the image."""
+    paper; 1 = off). The expert uses 1e6: the update then all but ignores that coordinate, and
+    the estimate along it follows the UAV's own motion instead of a centre pulled into the image.
+    Off for the RL shield: with the car filling the image both axes are cut, and ignoring them
+    let a collision-seeking policy reach the car (tests/test_wrappers_shield.py)."""
     gps_std: float = 0.05
     """Std of the UAV's own position r_c (m), v_k of eq. (11)."""
     init_position_std: float = 0.5
