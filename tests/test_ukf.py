@@ -233,25 +233,32 @@ def test_converges_and_recovers_from_dropout(seed):
     assert _spd(est.ukf.P)
 
 
-def test_a_box_coordinate_cut_by_the_border_is_ignored():
+def test_a_box_cut_by_the_border_does_not_drag_the_estimate():
     """From 3 s on the measured v is pulled 40 px inwards, as a box cut by the image border is.
-    Unflagged, the estimate follows it; flagged ``truncated_v``, x2 keeps following the UAV's own
-    motion (error < 5 px) while u is still used."""
+    Unflagged, the estimate follows it. Flagged ``truncated_v``, either option keeps x2 within
+    5 px: ignoring v (variance x 1e6), or replacing it by the held car height's pseudo-measurement.
+    u is still used."""
+    configs = {
+        "unflagged": UKFConfig(),
+        "ignore": UKFConfig(truncated_variance_scale=1e6),
+        "hold": UKFConfig(truncated_v_hold_height=True),
+    }
     err = {}
-    for flag in (False, True):
+    for name, cfg in configs.items():
         sim = Sim(0)
-        est = TargetEstimator(CAM, UKFConfig(truncated_variance_scale=1e6), DT)
+        est = TargetEstimator(CAM, cfg, DT)
         est.reset(sim.measure(), sim.p, sim.yaw)
         for _ in range(round(4.0 / DT)):
             u = sim.advance()
             m = sim.measure()
             if sim.t > 3.0:
-                m = dataclasses.replace(m, v=m.v - 40.0, truncated_v=flag)
+                m = dataclasses.replace(m, v=m.v - 40.0, truncated_v=name != "unflagged")
             e = est.step(u, sim.p, sim.yaw, m)
         s = sim.features()
-        err[flag] = (CAM.fx * abs(e.s[0] - s[0]), CAM.fy * abs(e.s[1] - s[1]))
-    assert err[False][1] > 20.0
-    assert err[True][1] < 5.0 and err[True][0] < 5.0
+        err[name] = (CAM.fx * abs(e.s[0] - s[0]), CAM.fy * abs(e.s[1] - s[1]))
+    assert err["unflagged"][1] > 20.0
+    for name in ("ignore", "hold"):
+        assert err[name][1] < 5.0 and err[name][0] < 5.0, (name, err[name])
     with pytest.raises(ValueError, match="truncated_variance_scale"):
         UKFConfig(truncated_variance_scale=0.5)
 

@@ -21,8 +21,8 @@ from .onboard import OnboardTracker, safety_context
 from .safety import SafetyFilter, ShieldReport
 from .safety.margins import ShieldMargins, shield_cbf
 
-EXPERT_UKF = UKFConfig(truncated_variance_scale=1e6)
-"""The expert's filter: a box coordinate cut by the image border is ignored (see UKFConfig)."""
+EXPERT_UKF = UKFConfig(truncated_v_hold_height=True)
+"""The expert's filter: a box cut by the top or bottom border gives v from the held car height."""
 
 
 @dataclass

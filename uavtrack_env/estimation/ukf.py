@@ -70,10 +70,9 @@ class UKFConfig:
     """Std of the measured relative angle psi (rad), v_k of eq. (11)."""
     truncated_variance_scale: float = 1.0
     """Multiplier of the pixel variance of a box coordinate cut by the image border (not in the
-    paper; 1 = off). The expert uses 1e6: the update then all but ignores that coordinate, and
-    the estimate along it follows the UAV's own motion instead of a centre pulled into the image.
-    Off for the RL shield: with the car filling the image both axes are cut, and ignoring them
-    let a collision-seeking policy reach the car (tests/test_wrappers_shield.py)."""
+    paper; 1 = off; 1e6 all but ignores it). Off by default: ignoring v let x2 drift with the
+    estimated car height in scenario C, and with the car filling the image (both axes cut) a
+    collision-seeking policy reached the car through the RL shield."""
     gps_std: float = 0.05
     """Std of the UAV's own position r_c (m), v_k of eq. (11)."""
     init_position_std: float = 0.5
@@ -105,6 +104,12 @@ class UKFConfig:
     """Refit every this many detected steps (the fit costs ~30 us; 20 Hz is plenty)."""
     max_target_accel: float = 3.0
     """Norm clamp (m/s^2) of the fitted acceleration fed to the dropout prediction (Fig. 5)."""
+    truncated_v_hold_height: bool = False
+    """When the box is cut by the top or bottom border, replace its biased centre v by the value
+    that the target's height estimated before the cut, the own altitude and the measured depth
+    give, v = c_v + f_y (z_uav - z_q) / d (a pseudo-measurement, not in the paper: the car stays
+    on the ground). The expert turns it on; a UAV looking down over a tall box otherwise sees the
+    car rise as the bottom of its box leaves the image, or, with v ignored, lets x2 drift."""
     planar_target: bool = True
     """The target moves in the X-Y plane (section VI-A): the dropout prediction (Remark 2) keeps
     its height, with zero vertical velocity and acceleration."""
@@ -471,6 +476,7 @@ class TargetEstimator:
         self._since = 0
         self._detected_steps = 0
         self._accel = np.zeros(3)
+        self._held_height: float | None = None
 
     # -- helpers
 
@@ -549,6 +555,7 @@ class TargetEstimator:
         self._since = 0
         self._detected_steps = 0
         self._accel = np.zeros(3)
+        self._held_height = None
         self._ready = True
         self._record()
         return self._estimate(yaw, True)
@@ -573,6 +580,13 @@ class TargetEstimator:
         p = _vec("uav_position", uav_position, 3)
         yaw = _scalar("uav_yaw", uav_yaw)
         z = None if meas is None else self._z(meas, p)
+        if z is not None and self.cfg.truncated_v_hold_height:
+            if meas.truncated_v:
+                if self._held_height is None:
+                    self._held_height = float(self.ukf.x[6])
+                z[1] = self.camera.cv + self.camera.fy * (p[2] - self._held_height) / meas.depth
+            else:
+                self._held_height = None
 
         if z is None and self._since == 0:  # dropout starts: freeze the fit (Fig. 5)
             fit = self.history.fit(self.t)
