@@ -13,21 +13,11 @@ import argparse
 import time
 
 import numpy as np
+from ukf_speed import _median_us  # benchmarks/ is on sys.path when run as a script
 
 from uavtrack_env.config import DT
 from uavtrack_env.control.viewpoint import ViewpointConfig, ViewpointPlanner, required_x2
 from uavtrack_env.scenarios import paper_layout
-
-
-def _median_us(fn, n: int) -> float:
-    for _ in range(min(200, n)):
-        fn()
-    times = np.empty(n)
-    for i in range(n):
-        t0 = time.perf_counter()
-        fn()
-        times[i] = time.perf_counter() - t0
-    return float(np.median(times) * 1e6)
 
 
 def main() -> None:
