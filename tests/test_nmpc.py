@@ -166,6 +166,19 @@ def test_error_signal_is_one_step_model_mismatch() -> None:
     assert np.all(off.solve(s1, vq_told).eps == 0)
 
 
+@pytest.mark.parametrize("integrator", ["rk4", "euler"])
+def test_float_prediction_equals_the_nlp_model(integrator: str) -> None:
+    """predict_one_step (plain floats) equals the CasADi F_m inside the NLP."""
+    ctrl = NMPC(REF, integrator=integrator)
+    rng = np.random.default_rng(3)
+    for _ in range(20):
+        s = np.array([*rng.uniform(-0.6, 0.6, 2), rng.uniform(0.05, 0.5), rng.uniform(-3, 3)])
+        u, vq = rng.uniform(-2, 2, 4), rng.uniform(-3, 3, 3)
+        nlp_model = np.asarray(ctrl._F(s, u, vq)).ravel()
+        np.testing.assert_allclose(ctrl.predict_one_step(s, u, vq), nlp_model, rtol=0, atol=1e-13)
+        assert np.abs(nlp_model - s).max() > 1e-4  # the step moves the state
+
+
 def test_error_signal_uses_applied_input() -> None:
     """With u_applied (e.g. after the CBF shield) the prediction uses that input."""
     ctrl = NMPC(REF)
@@ -272,8 +285,8 @@ def test_instances_share_one_build_without_crosstalk() -> None:
     """Same settings share the built solver; interleaved closed loops equal separate ones."""
     ref2 = np.array([0.0, 0.188, 1 / 7, -math.pi / 2])
     a, b = NMPC(REF), NMPC(ref2)
-    assert a._solver is b._solver and a._cold_solver is b._cold_solver
-    assert NMPC(REF, error_signal=False)._solver is not a._solver  # other options, other build
+    assert a._nlpsol is b._nlpsol and a._cold_nlpsol is b._cold_nlpsol
+    assert NMPC(REF, error_signal=False)._nlpsol is not a._nlpsol  # other options, other build
     vq = np.array([0.4, 0.0, 0.1])
 
     def loop(ctrls):

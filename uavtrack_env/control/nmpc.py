@@ -19,8 +19,11 @@ docs/conventions.md):
 
 from __future__ import annotations
 
+import atexit
 import math
 import os
+import shutil
+import sys
 import tempfile
 import time
 from dataclasses import dataclass, field
@@ -30,6 +33,7 @@ import casadi as ca
 import numpy as np
 
 from uavtrack_env.config import ControlLimits, FeatureBounds, NMPCConfig
+from uavtrack_env.control import jit_cache
 from uavtrack_env.geometry import feature_rates, wrap_angle
 
 _TWO_PI = 2.0 * math.pi
@@ -61,8 +65,9 @@ class NMPCOptions:
     expand: bool = True
     """Expand the MX graph to SX (faster evaluation)."""
     jit: bool = False
-    """JIT-compile the NLP functions with the system C compiler: ~25 % faster solves, ~30 s
-    build (once per process and settings; see BENCHMARKS.md). Needs gcc."""
+    """JIT-compile the NLP functions with the system C compiler (``$CC`` or gcc): ~1.7x faster
+    SQP solves. The first build on a machine compiles for 30-80 s; later processes with the same
+    settings reuse the objects from `jit_cache` (~3 s). See BENCHMARKS.md."""
     rescue_with_ipopt: bool = True
     """If 'sqp'/'rti' fails, re-solve the same problem with Ipopt before falling back."""
     max_fallback_steps: int = 10
@@ -111,8 +116,7 @@ _BUILT: dict[tuple, dict] = {}
 pays the build, or the JIT compile, once per process."""
 _BUILT_ATTRS = (
     "_F", "_ix", "_iu", "_isig", "_lbg", "_ubg", "_lbx", "_ubx", "_nw", "_ng", "_shift_w",
-    "_shift_g", "_nlp", "_cold_solver", "_solver", "_solver_plugin", "_lbx_dm", "_ubx_dm",
-    "_lbg_dm", "_ubg_dm",
+    "_shift_g", "_nlp", "_cold_nlpsol", "_nlpsol", "_solver_plugin",
 )  # fmt: skip
 
 
@@ -123,6 +127,49 @@ def _vec(name: str, value, n: int) -> np.ndarray:
     if not np.all(np.isfinite(arr)):
         raise ValueError(f"{name} must be finite, got {arr}")
     return arr
+
+
+def _jit_options() -> dict:
+    """CasADi options to JIT-compile a solver's functions through `jit_cache`.
+
+    Sources get fixed names (no random suffix), so the same settings give the same C file and the
+    cache hits; each process builds in its own directory, removed when the process ends.
+    """
+    build = tempfile.mkdtemp(prefix="uavtrack-jit-")
+    atexit.register(shutil.rmtree, build, True)
+    compiler = f'"{sys.executable}" "{jit_cache.__file__}"'
+    return {
+        "jit": True,
+        "compiler": "shell",
+        "jit_temp_suffix": False,
+        "jit_cleanup": False,
+        "jit_options": {
+            "flags": ["-O1"],
+            "directory": os.path.join(build, ""),
+            "compiler": compiler,
+            "cleanup": False,
+        },
+    }
+
+
+def _model_step(s: list, u: list, vq: list, dt: float, integrator: str) -> np.ndarray:
+    """`_discrete_model` evaluated on Python floats (lists in, array out)."""
+
+    def f(x):
+        return feature_rates(x, u, vq)
+
+    if integrator == "euler":
+        return np.array([a + dt * b for a, b in zip(s, f(s), strict=True)])
+    k1 = f(s)
+    k2 = f([a + dt / 2 * b for a, b in zip(s, k1, strict=True)])
+    k3 = f([a + dt / 2 * b for a, b in zip(s, k2, strict=True)])
+    k4 = f([a + dt * b for a, b in zip(s, k3, strict=True)])
+    return np.array(
+        [
+            a + dt / 6 * (b1 + 2 * b2 + 2 * b3 + b4)
+            for a, b1, b2, b3, b4 in zip(s, k1, k2, k3, k4, strict=True)
+        ]
+    )
 
 
 def _discrete_model(dt: float, integrator: str) -> ca.Function:
@@ -141,6 +188,36 @@ def _discrete_model(dt: float, integrator: str) -> ca.Function:
         k4 = f(s + dt * k3)
         s_next = s + dt / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
     return ca.Function("F_m", [s, u, vq], [s_next], ["s", "u", "vq"], ["s_next"])
+
+
+class _BufferedSolver:
+    """An nlpsol called through CasADi's buffer API: numpy arrays in and out.
+
+    Converting the ~550-long vectors to and from DM cost ~0.5 ms per solve here (10 % of it).
+    Offers the two methods `NMPC._call` uses of a Function: ``call(dict)`` and ``stats()``.
+    """
+
+    def __init__(self, function: ca.Function) -> None:
+        self.function = function
+        self._buf, self._run = function.buffer()
+        self._names_in, self._names_out = function.name_in(), function.name_out()
+        self._in = [np.zeros(function.nnz_in(i)) for i in range(function.n_in())]
+        self._out = [np.zeros(function.nnz_out(i)) for i in range(function.n_out())]
+        for i, a in enumerate(self._in):
+            self._buf.set_arg(i, memoryview(a))
+        for i, a in enumerate(self._out):
+            self._buf.set_res(i, memoryview(a))
+
+    def call(self, args: dict) -> dict[str, np.ndarray]:
+        """Evaluate with the given inputs (missing ones are zero); returns copies of the outputs."""
+        for name, a in zip(self._names_in, self._in, strict=True):
+            a[:] = args.get(name, 0.0)
+        self._run()
+        return {name: a.copy() for name, a in zip(self._names_out, self._out, strict=True)}
+
+    def stats(self) -> dict:
+        """Statistics of the last call."""
+        return self._buf.stats()
 
 
 class NMPC:
@@ -177,6 +254,9 @@ class NMPC:
             self._build()
             built = _BUILT[key] = {k: self.__dict__[k] for k in _BUILT_ATTRS}
         self.__dict__.update(built)
+        # Per instance: the buffers hold this controller's solver memory.
+        self._solver = _BufferedSolver(self._nlpsol)
+        self._cold_solver = _BufferedSolver(self._cold_nlpsol)
         self.reset()
 
     # ------------------------------------------------------------------ build
@@ -268,11 +348,7 @@ class NMPC:
         self._nlp = nlp
         common: dict = {"print_time": False, "expand": opt.expand, "error_on_fail": False}
         if opt.jit:
-            # temporary C sources and objects go to the system's temp dir, not the cwd
-            jit_dir = os.path.join(tempfile.gettempdir(), "")
-            common.update(
-                jit=True, compiler="shell", jit_options={"flags": ["-O1"], "directory": jit_dir}
-            )
+            common.update(_jit_options())
         solver = self.cfg.solver
         ipopt_opts = {
             **common,
@@ -283,7 +359,9 @@ class NMPC:
         }
         # Cold starts (first step, after a hover fallback) go to Ipopt: an active-set QP
         # from a poor guess can take hundreds of ms, the interior point ~10 ms.
-        self._cold_solver = ca.nlpsol("nmpc_cold", "ipopt", nlp, ipopt_opts)
+        if opt.jit:
+            ipopt_opts["jit_name"] = "nmpc_cold"
+        self._cold_nlpsol = ca.nlpsol("nmpc_cold", "ipopt", nlp, ipopt_opts)
         if solver == "ipopt":
             plug = "ipopt"
             sopts = {**ipopt_opts, "ipopt.warm_start_init_point": "yes", "ipopt.mu_init": 1e-3}
@@ -304,10 +382,10 @@ class NMPC:
                 sopts["hess_lag"] = self._gauss_newton_hessian(nlp)
             else:
                 sopts["convexify_strategy"] = "regularize"
-        self._solver = ca.nlpsol("nmpc", plug, nlp, sopts)
+        if opt.jit:
+            sopts["jit_name"] = "nmpc"
+        self._nlpsol = ca.nlpsol("nmpc", plug, nlp, sopts)
         self._solver_plugin = plug
-        self._lbx_dm, self._ubx_dm = ca.DM(lbx), ca.DM(ubx)
-        self._lbg_dm, self._ubg_dm = ca.DM(self._lbg), ca.DM(self._ubg)
 
     @staticmethod
     def _qp_options(qpsol: str) -> dict:
@@ -355,8 +433,18 @@ class NMPC:
         return out
 
     def predict_one_step(self, s: np.ndarray, u: np.ndarray, vq_cam: np.ndarray) -> np.ndarray:
-        """F_m(s, u) of eq. (19) with target velocity vq_cam (numpy in, numpy out)."""
-        return np.asarray(self._F(s, u, vq_cam)).ravel()
+        """F_m(s, u) of eq. (19) with target velocity vq_cam (numpy in, numpy out).
+
+        Plain float arithmetic, the same formulas as the CasADi ``F_m`` in the NLP (equal to
+        ~1e-15): calling that Function from Python costs ~50x more.
+        """
+        return _model_step(
+            np.asarray(s, float).tolist(),
+            np.asarray(u, float).tolist(),
+            np.asarray(vq_cam, float).tolist(),
+            self.cfg.dt,
+            self.options.integrator,
+        )
 
     def solve(
         self,
@@ -408,7 +496,7 @@ class NMPC:
                 "lam_g0": self._lam_g[self._shift_g],
                 "lam_x0": self._lam_x[self._shift_w],
             }
-        args.update(p=p, lbx=self._lbx_dm, ubx=self._ubx_dm, lbg=self._lbg_dm, ubg=self._ubg_dm)
+        args.update(p=p, lbx=self._lbx, ubx=self._ubx, lbg=self._lbg, ubg=self._ubg)
 
         ok, sol, status, iters = self._call(solver, args)
         used = "ipopt" if solver is self._cold_solver else self._solver_plugin
@@ -418,10 +506,8 @@ class NMPC:
             used = f"{used}+ipopt"
 
         if ok:
-            w_opt = np.asarray(sol["x"]).ravel()
-            self._w = w_opt
-            self._lam_g = np.asarray(sol["lam_g"]).ravel()
-            self._lam_x = np.asarray(sol["lam_x"]).ravel()
+            w_opt = self._w = sol["x"]
+            self._lam_g, self._lam_x = sol["lam_g"], sol["lam_x"]
             if used != self._solver_plugin and self._solver_plugin != "ipopt":
                 # Ipopt's inactive multipliers are tiny but nonzero; an active-set QP would
                 # read them as an all-active guess and spend hundreds of iterations dropping them.
@@ -460,7 +546,7 @@ class NMPC:
         if solver is self._solver and self.cfg.solver == "rti":
             # one SQP iteration is the point of RTI: an iteration limit is its normal exit
             ok = ok or stats.get("unified_return_status") == "SOLVER_RET_LIMITED"
-        ok = ok and bool(np.all(np.isfinite(np.asarray(sol["x"]))))
+        ok = ok and bool(np.isfinite(sol["x"]).all())
         return ok, sol, status, int(stats.get("iter_count", 0))
 
     def _cold_start(self, s_rel: np.ndarray, vq: np.ndarray, aq: np.ndarray) -> np.ndarray:
