@@ -20,6 +20,7 @@ docs/conventions.md):
 from __future__ import annotations
 
 import atexit
+import contextlib
 import math
 import os
 import shutil
@@ -129,14 +130,13 @@ def _vec(name: str, value, n: int) -> np.ndarray:
     return arr
 
 
-def _jit_options() -> dict:
+def _jit_options(build: str) -> dict:
     """CasADi options to JIT-compile a solver's functions through `jit_cache`.
 
     Sources get fixed names (no random suffix), so the same settings give the same C file and the
-    cache hits; each process builds in its own directory, removed when the process ends.
+    cache hits. CasADi writes the sources to the working directory: build the solvers inside
+    `_jit_build_dir` (a private directory per process, removed when the process ends).
     """
-    build = tempfile.mkdtemp(prefix="uavtrack-jit-")
-    atexit.register(shutil.rmtree, build, True)
     compiler = f'"{sys.executable}" "{jit_cache.__file__}"'
     return {
         "jit": True,
@@ -150,6 +150,19 @@ def _jit_options() -> dict:
             "cleanup": False,
         },
     }
+
+
+@contextlib.contextmanager
+def _jit_build_dir():
+    """A fresh directory, made the working directory for the duration (JIT sources land here)."""
+    build = tempfile.mkdtemp(prefix="uavtrack-jit-")
+    atexit.register(shutil.rmtree, build, True)
+    cwd = os.getcwd()
+    os.chdir(build)
+    try:
+        yield build
+    finally:
+        os.chdir(cwd)
 
 
 def _model_step(s: list, u: list, vq: list, dt: float, integrator: str) -> np.ndarray:
@@ -346,9 +359,16 @@ class NMPC:
 
         nlp = {"x": w, "p": p, "f": cost, "g": g}
         self._nlp = nlp
-        common: dict = {"print_time": False, "expand": opt.expand, "error_on_fail": False}
         if opt.jit:
-            common.update(_jit_options())
+            with _jit_build_dir() as build:
+                self._make_solvers(nlp, _jit_options(build))
+        else:
+            self._make_solvers(nlp, {})
+
+    def _make_solvers(self, nlp: dict, jit: dict) -> None:
+        """The Ipopt solver of cold starts and rescues, and the configured solver."""
+        cfg, opt = self.cfg, self.options
+        common: dict = {"print_time": False, "expand": opt.expand, "error_on_fail": False, **jit}
         solver = self.cfg.solver
         ipopt_opts = {
             **common,
@@ -359,9 +379,7 @@ class NMPC:
         }
         # Cold starts (first step, after a hover fallback) go to Ipopt: an active-set QP
         # from a poor guess can take hundreds of ms, the interior point ~10 ms.
-        if opt.jit:
-            ipopt_opts["jit_name"] = "nmpc_cold"
-        self._cold_nlpsol = ca.nlpsol("nmpc_cold", "ipopt", nlp, ipopt_opts)
+        self._cold_nlpsol = ca.nlpsol("nmpc_cold", "ipopt", nlp, {**ipopt_opts, "jit_name": "cold"})
         if solver == "ipopt":
             plug = "ipopt"
             sopts = {**ipopt_opts, "ipopt.warm_start_init_point": "yes", "ipopt.mu_init": 1e-3}
@@ -382,9 +400,7 @@ class NMPC:
                 sopts["hess_lag"] = self._gauss_newton_hessian(nlp)
             else:
                 sopts["convexify_strategy"] = "regularize"
-        if opt.jit:
-            sopts["jit_name"] = "nmpc"
-        self._nlpsol = ca.nlpsol("nmpc", plug, nlp, sopts)
+        self._nlpsol = ca.nlpsol("nmpc", plug, nlp, {**sopts, "jit_name": "nmpc"})
         self._solver_plugin = plug
 
     @staticmethod
