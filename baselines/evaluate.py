@@ -60,6 +60,12 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     )
     ap.add_argument("--nmpc-solver", default=None, choices=["sqp", "ipopt", "rti"])
     ap.add_argument(
+        "--terminal-weight",
+        default="w_s",
+        choices=["w_s", "lqr"],
+        help="NMPC terminal weight W_s: diag(w_s) (Q_s's diagonal) or the LQR cost-to-go",
+    )
+    ap.add_argument(
         "--jit",
         action="store_true",
         help="JIT-compile the NMPC with gcc (~1.7x faster solves; the first build on a machine "
@@ -99,7 +105,10 @@ def _make_policy(args: argparse.Namespace, env):
         from uavtrack_env.control.viewpoint import ViewpointConfig
         from uavtrack_env.expert import ExpertPolicy
 
-        nmpc = NMPCConfig(solver=args.nmpc_solver) if args.nmpc_solver else None
+        nmpc = NMPCConfig(
+            **({"solver": args.nmpc_solver} if args.nmpc_solver else {}),
+            terminal_weight=args.terminal_weight,
+        )
         return ExpertPolicy.from_env(
             env,
             use_cbf=not args.no_cbf,
@@ -145,6 +154,7 @@ def run_episode(args: argparse.Namespace, scenario: str, init: int, out: Path) -
         "dynamics": args.dynamics,
         "cbf": not args.no_cbf,
         "viewpoint": not args.no_viewpoint,
+        "terminal_weight": args.terminal_weight,
         "uavs": rec.summary(),
         "timing_ms": timing,
         "initial_conditions": {

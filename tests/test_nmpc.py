@@ -305,3 +305,49 @@ def test_instances_share_one_build_without_crosstalk() -> None:
     alone = {**loop([a]), **loop([b])}
     for key in together:
         np.testing.assert_array_equal(np.array(together[key]), np.array(alone[key]))
+
+
+REF_A = np.array([0.0, 0.188, 1 / 7, math.pi / 2])  # scenario A's reference for UAV1
+
+
+def test_lqr_terminal_weight_solves_riccati_of_the_model() -> None:
+    """W_s = P with P = Q + A'PA - A'PB (R + B'PB)^-1 B'PA, A and B by finite differences."""
+    ctrl = NMPC(REF_A, NMPCConfig(terminal_weight="lqr"))
+    P = ctrl.w_terminal
+    np.testing.assert_allclose(P, P.T)
+    assert np.linalg.eigvalsh(P).min() > 0
+    zero_u, still = np.zeros(4), np.zeros(3)
+    h = 1e-6
+    A = np.column_stack(
+        [
+            (ctrl.predict_one_step(REF_A + h * e, zero_u, still)
+             - ctrl.predict_one_step(REF_A - h * e, zero_u, still)) / (2 * h)
+            for e in np.eye(4)
+        ]
+    )  # fmt: skip
+    B = np.column_stack(
+        [
+            (ctrl.predict_one_step(REF_A, h * e, still)
+             - ctrl.predict_one_step(REF_A, -h * e, still)) / (2 * h)
+            for e in np.eye(4)
+        ]
+    )  # fmt: skip
+    Q, R = np.diag(NMPCConfig().q_s), np.diag(NMPCConfig().r_u)
+    riccati = Q + A.T @ P @ A - A.T @ P @ B @ np.linalg.solve(R + B.T @ P @ B, B.T @ P @ A)
+    np.testing.assert_allclose(riccati, P, rtol=1e-5, atol=1e-5 * np.abs(P).max())
+    # the default keeps the paper's reading: W_s = diag(w_s)
+    np.testing.assert_array_equal(NMPC(REF_A).w_terminal, np.diag(NMPCConfig().w_s))
+
+
+def test_lqr_terminal_weight_converges_faster() -> None:
+    """On its own model, 1 s after an offset the LQR terminal weight leaves < 0.8x the error."""
+    errors = {}
+    for weight in ("w_s", "lqr"):
+        ctrl = NMPC(REF_A, NMPCConfig(terminal_weight=weight))
+        s, vq = REF_A + np.array([0.3, 0.1, 0.0, 0.3]), np.zeros(3)
+        for _ in range(80):
+            res = ctrl.solve(s, vq)
+            assert res.success, res.status
+            s = _rk4(s, res.u, vq)
+        errors[weight] = np.linalg.norm((s - REF_A)[[0, 1, 3]])
+    assert errors["lqr"] < 0.8 * errors["w_s"], errors

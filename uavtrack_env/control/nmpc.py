@@ -112,7 +112,7 @@ class NMPCResult:
 
 
 _BUILT: dict[tuple, dict] = {}
-"""Built NLPs by (cfg, limits, bounds, options): every UAV with the same settings shares one
+"""Built NLPs by (cfg, limits, bounds, options, W_s): every UAV with the same settings shares one
 (the reference enters as a parameter; the warm start lives in the NMPC instance), so a fleet
 pays the build, or the JIT compile, once per process."""
 _BUILT_ATTRS = (
@@ -260,10 +260,14 @@ class NMPC:
             raise TypeError(f"pass either options or keyword overrides, not both: {overrides}")
         self.cfg, self.limits, self.bounds, self.options = cfg, limits, bounds, options
         self.N = cfg.horizon
-        key = (cfg, limits, bounds, options)
+        self._F = _discrete_model(cfg.dt, options.integrator)
+        self.w_terminal = (
+            self._lqr_weight() if cfg.terminal_weight == "lqr" else np.diag(cfg.w_s).astype(float)
+        )
+        """W_s of eq. (18) in this controller's NLP (4, 4)."""
+        key = (cfg, limits, bounds, options, self.w_terminal.tobytes())
         built = _BUILT.get(key)
         if built is None:
-            self._F = _discrete_model(cfg.dt, options.integrator)
             self._build()
             built = _BUILT[key] = {k: self.__dict__[k] for k in _BUILT_ATTRS}
         self.__dict__.update(built)
@@ -297,7 +301,10 @@ class NMPC:
         # Parameters: s_k (4), s_d (4), vq_cam (3), aq_cam (3).
         p = ca.MX.sym("p", 14)
         s0, s_d, vq, aq = p[0:4], p[4:8], p[8:11], p[11:14]
-        Q, R, W = (ca.diag(ca.DM(v)) for v in (cfg.q_s, cfg.r_u, cfg.w_s))
+        Q, R = (ca.diag(ca.DM(v)) for v in (cfg.q_s, cfg.r_u))
+        W = ca.sparsify(
+            ca.DM(self.w_terminal)
+        )  # (18); a full matrix for 'lqr' (then part of the build key)
         lo = np.array([self.bounds.x1[0], self.bounds.x2[0], self.bounds.x3[0]])
         hi = np.array([self.bounds.x1[1], self.bounds.x2[1], self.bounds.x3[1]])
 
@@ -403,6 +410,18 @@ class NMPC:
         self._nlpsol = ca.nlpsol("nmpc", plug, nlp, {**sopts, "jit_name": "nmpc"})
         self._solver_plugin = plug
 
+    def _lqr_weight(self) -> np.ndarray:
+        """P of the discrete Riccati equation for (Q_s, R_u) and F_m linearised at s*, u = 0,
+        target still (`NMPCConfig.terminal_weight` = 'lqr'). psi* does not enter F_m."""
+        from scipy.linalg import solve_discrete_are
+
+        s, u, vq = ca.SX.sym("s", 4), ca.SX.sym("u", 4), ca.SX.sym("vq", 3)
+        nxt = self._F(s, u, vq)
+        lin = ca.Function("linearised", [s, u, vq], [ca.jacobian(nxt, s), ca.jacobian(nxt, u)])
+        A, B = (np.array(m) for m in lin(self.reference, np.zeros(4), np.zeros(3)))
+        P = solve_discrete_are(A, B, np.diag(self.cfg.q_s), np.diag(self.cfg.r_u))
+        return 0.5 * (P + P.T)
+
     @staticmethod
     def _qp_options(qpsol: str) -> dict:
         base: dict = {"error_on_fail": False}
@@ -427,7 +446,9 @@ class NMPC:
         lam_g = ca.MX.sym("lam_g", nlp["g"].shape[0])
         reg = np.zeros(self._nw)
         reg[self._isig] = self.options.slack_hessian
-        H = ca.triu(lam_f * ca.hessian(nlp["f"], w)[0] + ca.diag(ca.DM(reg)))
+        H = lam_f * ca.hessian(nlp["f"], w)[0] + ca.diag(ca.DM(reg))
+        if not np.count_nonzero(self.w_terminal - np.diag(np.diag(self.w_terminal))):
+            H = ca.triu(H)  # diagonal: the upper triangle is the (symmetric) whole
         return ca.Function(
             "gn_hess", [w, p, lam_f, lam_g], [H], ["x", "p", "lam_f", "lam_g"], ["hess"]
         ).expand()
