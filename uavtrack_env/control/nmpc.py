@@ -302,9 +302,8 @@ class NMPC:
         p = ca.MX.sym("p", 14)
         s0, s_d, vq, aq = p[0:4], p[4:8], p[8:11], p[11:14]
         Q, R = (ca.diag(ca.DM(v)) for v in (cfg.q_s, cfg.r_u))
-        W = ca.sparsify(
-            ca.DM(self.w_terminal)
-        )  # (18); a full matrix for 'lqr' (then part of the build key)
+        # W_s of (18): diagonal, or a full matrix for 'lqr' (it is part of the build key)
+        W = ca.sparsify(ca.DM(self.w_terminal))
         lo = np.array([self.bounds.x1[0], self.bounds.x2[0], self.bounds.x3[0]])
         hi = np.array([self.bounds.x1[1], self.bounds.x2[1], self.bounds.x3[1]])
 
