@@ -351,3 +351,12 @@ def test_lqr_terminal_weight_converges_faster() -> None:
             s = _rk4(s, res.u, vq)
         errors[weight] = np.linalg.norm((s - REF_A)[[0, 1, 3]])
     assert errors["lqr"] < 0.8 * errors["w_s"], errors
+
+
+def test_invalid_terminal_weight_is_rejected() -> None:
+    with pytest.raises(ValueError, match="terminal_weight must be 'w_s' or 'lqr'"):
+        NMPCConfig(terminal_weight="riccati")
+    with pytest.raises(ValueError, match="needs every r_u > 0"):
+        NMPCConfig(terminal_weight="lqr", r_u=(0.02, 0.03, 0.0, 0.3))
+    with pytest.raises(ValueError, match="ipopt_tol"):
+        NMPCOptions(ipopt_tol=0.0)
