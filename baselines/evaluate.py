@@ -58,7 +58,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         choices=["paper", "moving-target"],
         help="eq. (43) or not",
     )
-    ap.add_argument("--nmpc-solver", default=None, choices=["sqp", "ipopt", "rti"])
+    ap.add_argument("--nmpc-solver", default="sqp", choices=["sqp", "ipopt", "rti"])
     ap.add_argument(
         "--terminal-weight",
         default="w_s",
@@ -105,10 +105,7 @@ def _make_policy(args: argparse.Namespace, env):
         from uavtrack_env.control.viewpoint import ViewpointConfig
         from uavtrack_env.expert import ExpertPolicy
 
-        nmpc = NMPCConfig(
-            **({"solver": args.nmpc_solver} if args.nmpc_solver else {}),
-            terminal_weight=args.terminal_weight,
-        )
+        nmpc = NMPCConfig(solver=args.nmpc_solver, terminal_weight=args.terminal_weight)
         return ExpertPolicy.from_env(
             env,
             use_cbf=not args.no_cbf,

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import atexit
 import contextlib
+import functools
 import math
 import os
 import shutil
@@ -116,7 +117,7 @@ _BUILT: dict[tuple, dict] = {}
 (the reference enters as a parameter; the warm start lives in the NMPC instance), so a fleet
 pays the build, or the JIT compile, once per process."""
 _BUILT_ATTRS = (
-    "_F", "_ix", "_iu", "_isig", "_lbg", "_ubg", "_lbx", "_ubx", "_nw", "_ng", "_shift_w",
+    "_ix", "_iu", "_isig", "_lbg", "_ubg", "_lbx", "_ubx", "_nw", "_ng", "_shift_w",
     "_shift_g", "_nlp", "_cold_nlpsol", "_nlpsol", "_solver_plugin",
 )  # fmt: skip
 
@@ -185,6 +186,7 @@ def _model_step(s: list, u: list, vq: list, dt: float, integrator: str) -> np.nd
     )
 
 
+@functools.cache
 def _discrete_model(dt: float, integrator: str) -> ca.Function:
     """F_m of eq. (19): eq. (15) integrated over one sampling time dt."""
     s, u, vq = ca.SX.sym("s", 4), ca.SX.sym("u", 4), ca.SX.sym("vq", 3)
@@ -446,8 +448,6 @@ class NMPC:
         reg = np.zeros(self._nw)
         reg[self._isig] = self.options.slack_hessian
         H = lam_f * ca.hessian(nlp["f"], w)[0] + ca.diag(ca.DM(reg))
-        if not np.count_nonzero(self.w_terminal - np.diag(np.diag(self.w_terminal))):
-            H = ca.triu(H)  # diagonal: the upper triangle is the (symmetric) whole
         return ca.Function(
             "gn_hess", [w, p, lam_f, lam_g], [H], ["x", "p", "lam_f", "lam_g"], ["hess"]
         ).expand()
