@@ -60,10 +60,37 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     )
     ap.add_argument("--nmpc-solver", default="sqp", choices=["sqp", "ipopt", "rti"])
     ap.add_argument(
+        "--planner",
+        default="paper",
+        choices=["paper", "tuned"],
+        help="the paper's NMPC, or 'tuned' (not in the paper): LQR terminal weight, the target's "
+        "turn rate in u_d and the shield's CBF rows on the plan (docs/conventions.md)",
+    )
+    ap.add_argument(
         "--terminal-weight",
-        default="w_s",
+        default=None,
         choices=["w_s", "lqr"],
         help="NMPC terminal weight W_s: diag(w_s) (Q_s's diagonal) or the LQR cost-to-go",
+    )
+    ap.add_argument(
+        "--yaw-rate-reference",
+        default=None,
+        choices=["zero", "target-turn"],
+        help="yaw rate of the NMPC's u_d (19): 0 (paper) or the target's estimated turn rate",
+    )
+    ap.add_argument(
+        "--safety-rows",
+        type=int,
+        default=None,
+        metavar="K",
+        help="not in the paper: the NMPC plan respects the shield's K nearest-active CBF rows",
+    )
+    ap.add_argument(
+        "--safety-row-stages",
+        type=int,
+        default=None,
+        metavar="N",
+        help="with --safety-rows: only plan stages 0..N-1 respect them (default: all)",
     )
     ap.add_argument(
         "--jit",
@@ -98,18 +125,38 @@ def _env_kwargs(args: argparse.Namespace, scenario: str, init: int, steps: int) 
     return kw
 
 
+def planner_config(args: argparse.Namespace):
+    """(NMPCConfig, UKFConfig) of the expert: the --planner preset, then the explicit flags."""
+    from dataclasses import replace
+
+    from uavtrack_env.config import NMPCConfig
+    from uavtrack_env.expert import EXPERT_UKF, TUNED_NMPC, TUNED_UKF
+
+    nmpc, ukf = (TUNED_NMPC, TUNED_UKF) if args.planner == "tuned" else (NMPCConfig(), EXPERT_UKF)
+    flags = {
+        "terminal_weight": args.terminal_weight,
+        "yaw_rate_reference": args.yaw_rate_reference,
+        "safety_rows": args.safety_rows,
+        "safety_row_stages": args.safety_row_stages,
+    }
+    nmpc = replace(
+        nmpc, solver=args.nmpc_solver, **{k: v for k, v in flags.items() if v is not None}
+    )
+    return nmpc, ukf
+
+
 def _make_policy(args: argparse.Namespace, env):
     if args.policy == "expert":
-        from uavtrack_env.config import NMPCConfig
         from uavtrack_env.control import NMPCOptions
         from uavtrack_env.control.viewpoint import ViewpointConfig
         from uavtrack_env.expert import ExpertPolicy
 
-        nmpc = NMPCConfig(solver=args.nmpc_solver, terminal_weight=args.terminal_weight)
+        nmpc, ukf = planner_config(args)
         return ExpertPolicy.from_env(
             env,
             use_cbf=not args.no_cbf,
             nmpc=nmpc,
+            ukf=ukf,
             nmpc_options=NMPCOptions(jit=True) if args.jit else None,
             viewpoint=ViewpointConfig(enabled=not args.no_viewpoint),
         )
@@ -151,7 +198,11 @@ def run_episode(args: argparse.Namespace, scenario: str, init: int, out: Path) -
         "dynamics": args.dynamics,
         "cbf": not args.no_cbf,
         "viewpoint": not args.no_viewpoint,
-        "terminal_weight": args.terminal_weight,
+        "planner": args.planner,
+        **{
+            k: getattr(planner_config(args)[0], k)
+            for k in ("terminal_weight", "yaw_rate_reference", "safety_rows", "safety_row_stages")
+        },
         "uavs": rec.summary(),
         "timing_ms": timing,
         "initial_conditions": {

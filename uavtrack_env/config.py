@@ -114,9 +114,31 @@ class NMPCConfig:
     """NLP solver: 'ipopt' as in the paper, 'sqp' (sqpmethod + qrqp, warm-started), 'rti'."""
     max_iter: int = 20
     """Iteration cap per solve."""
+    yaw_rate_reference: Literal["zero", "target-turn"] = "zero"
+    """omega_cy of the desired input u_d in (19): 'zero' (the paper) or 'target-turn', the
+    target's turn rate from its estimated velocity and acceleration (not in the paper): R_u
+    then stops pulling the yaw rate to 0 while the formation turns with the target."""
+    turn_rate_min_speed: float = 0.2
+    """Below this target speed (m/s) the turn rate is undefined and 0 is used."""
+    safety_rows: int = 0
+    """Not in the paper: how many of the shield's CBF half-spaces (47) the plan respects on its
+    velocities (0 = the paper's NMPC, which does not know the CBF-QP exists). See
+    `uavtrack_env.control.nmpc` and docs/conventions.md."""
+    safety_row_stages: int | None = None
+    """Plan stages 0..K-1 that respect those half-spaces (None: the whole horizon)."""
 
     def __post_init__(self) -> None:
         _require(self.horizon >= 1, f"horizon must be >= 1, got {self.horizon}")
+        _require(self.safety_rows >= 0, f"safety_rows must be >= 0, got {self.safety_rows}")
+        _require(
+            self.yaw_rate_reference in ("zero", "target-turn"),
+            f"yaw_rate_reference must be 'zero' or 'target-turn', got {self.yaw_rate_reference!r}",
+        )
+        _require(self.turn_rate_min_speed > 0, "turn_rate_min_speed must be > 0")
+        _require(
+            self.safety_row_stages is None or 1 <= self.safety_row_stages <= self.horizon,
+            f"safety_row_stages must be None or in [1, horizon], got {self.safety_row_stages}",
+        )
         _require(self.dt > 0, f"dt must be > 0, got {self.dt}")
         for name in ("q_s", "r_u", "w_s"):
             _require(all(w >= 0 for w in getattr(self, name)), f"{name} must be non-negative")

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import time
 from collections import defaultdict
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -23,6 +23,15 @@ from .safety.margins import ShieldMargins, shield_cbf
 
 EXPERT_UKF = UKFConfig(truncated_v_hold_height=True)
 """The expert's filter: a box cut by the top or bottom border gives v from the held car height."""
+
+TUNED_NMPC = NMPCConfig(
+    terminal_weight="lqr", yaw_rate_reference="target-turn", safety_rows=4, safety_row_stages=10
+)
+"""The 'tuned' planner (not the paper's; ``--planner tuned``): LQR terminal weight, the target's
+turn rate in u_d, and the shield's 4 nearest-active CBF rows on the plan's first 10 stages."""
+TUNED_UKF = replace(EXPERT_UKF, fit_settle_time=2.0)
+"""The 'tuned' planner's filter: the turn rate comes from the fitted acceleration, so the first
+2 s of estimates, while V_q converges from 0, are left out of the fit."""
 
 
 @dataclass
@@ -129,21 +138,29 @@ class ExpertPolicy:
             return np.zeros(4, np.float32)  # nothing seen yet: hover
         yaw = info["own"]["yaw"]
         t1 = time.perf_counter()
+        plan_rows = rows = None
+        if self.use_cbf:  # the CBF rows (47): the QP's, and with safety_rows also the plan's
+            ctx = safety_context(info, est, self.obstacle_centers, self.obstacle_half_extents)
+            rows = self.shield.rows(ctx)
+            if st.nmpc.cfg.safety_rows:
+                plan_rows = self.shield.camera_rows(rows, yaw, st.nmpc.cfg.safety_rows)
+        t2 = time.perf_counter()
         own = info["own"]["position"]
         st.nmpc.reference[1] = st.viewpoint.update(
             est.target_position, est.target_velocity, own, est.s[1], 1.0 / est.s[2]
         )
         aq_cam = world_to_cam_vec(est.target_acceleration, yaw)
-        st.last_nmpc = res = st.nmpc.solve(est.s, est.vq_cam, aq_cam, u_applied=st.last_u)
+        st.last_nmpc = res = st.nmpc.solve(
+            est.s, est.vq_cam, aq_cam, u_applied=st.last_u, safety_rows=plan_rows
+        )
         u = res.u
-        t2 = time.perf_counter()
-        if self.use_cbf:
-            ctx = safety_context(info, est, self.obstacle_centers, self.obstacle_half_extents)
-            u, st.last_report = self.shield.certify(u, ctx)
         t3 = time.perf_counter()
+        if self.use_cbf:
+            u, st.last_report = self.shield.certify(u, ctx, rows)
+        t4 = time.perf_counter()
         self.timings["ukf"].append(t1 - t0)
-        self.timings["nmpc"].append(t2 - t1)
-        self.timings["qp"].append(t3 - t2)
+        self.timings["nmpc"].append(t3 - t2)
+        self.timings["qp"].append(t2 - t1 + t4 - t3)
         st.last_u = np.asarray(u, float)
         return np.clip(st.last_u / self.scale, -1.0, 1.0).astype(np.float32)
 

@@ -118,7 +118,7 @@ _BUILT: dict[tuple, dict] = {}
 pays the build, or the JIT compile, once per process."""
 _BUILT_ATTRS = (
     "_ix", "_iu", "_isig", "_lbg", "_ubg", "_lbx", "_ubx", "_nw", "_ng", "_shift_w",
-    "_shift_g", "_nlp", "_cold_nlpsol", "_nlpsol", "_solver_plugin",
+    "_shift_g", "_nlp", "_cold_nlpsol", "_nlpsol", "_solver_plugin", "_irow",
 )  # fmt: skip
 
 
@@ -298,11 +298,17 @@ class NMPC:
         self._ix = np.stack([index[("x", n)] for n in range(N + 1)])  # (N+1, 4)
         self._iu = np.stack([index[("u", n)] for n in range(N)])  # (N, 4)
         self._isig = np.stack([index[("sig", n)] for n in range(1, N + 1)])  # (N, 3)
+        nr = cfg.safety_rows
+        self._irow = np.arange(nw, nw + nr)  # one L1 slack per safety half-space
+        nw += nr
 
         w = ca.MX.sym("w", nw)
-        # Parameters: s_k (4), s_d (4), vq_cam (3), aq_cam (3).
-        p = ca.MX.sym("p", 14)
-        s0, s_d, vq, aq = p[0:4], p[4:8], p[8:11], p[11:14]
+        # Parameters: s_k (4), s_d (4), vq_cam (3), aq_cam (3), omega_d (1), then nr rows
+        # a_c (3 nr) and b (nr).
+        p = ca.MX.sym("p", 15 + 4 * nr)
+        s0, s_d, vq, aq, w_d = p[0:4], p[4:8], p[8:11], p[11:14], p[14]
+        rows_a = ca.reshape(p[15 : 15 + 3 * nr], 3, nr).T if nr else None
+        rows_b = p[15 + 3 * nr :]
         Q, R = (ca.diag(ca.DM(v)) for v in (cfg.q_s, cfg.r_u))
         # W_s of (18): diagonal, or a full matrix for 'lqr' (it is part of the build key)
         W = ca.sparsify(ca.DM(self.w_terminal))
@@ -322,7 +328,7 @@ class NMPC:
         g, lbg, ubg = [X(0) - s0], [np.zeros(4)], [np.zeros(4)]  # (19): s_m,k = s_k
         for n in range(N):
             vq_n = vq + aq * (n * cfg.dt)  # (19): u_d,k+n = u_d,k + n [a_q dt, 0]
-            u_d = ca.vertcat(vq_n, 0)
+            u_d = ca.vertcat(vq_n, w_d)  # w_d = 0 in the paper
             e_s, e_u = X(n) - s_d, U(n) - u_d
             cost += ca.bilin(Q, e_s, e_s) + ca.bilin(R, e_u, e_u)  # stage cost of (18)
             g.append(X(n + 1) - self._F(X(n), U(n), vq_n))  # (19): s_m,k+n+1 = F_m(...)
@@ -336,6 +342,14 @@ class NMPC:
             cost += opt.slack_weight * ca.sum1(sig)
         e_N = X(N) - s_d
         cost += ca.bilin(W, e_N, e_N)  # terminal cost of (18)
+        K = cfg.safety_row_stages or N
+        if nr:  # the shield's half-spaces a_c v <= b on the planned velocities, L1-softened
+            slack = w[int(self._irow[0]) : int(self._irow[0]) + nr]
+            for n in range(K):
+                g.append(rows_a @ U(n)[0:3] - slack - rows_b)
+                lbg.append(np.full(nr, -np.inf))
+                ubg.append(np.zeros(nr))
+            cost += opt.slack_weight * ca.sum1(slack)
         g = ca.vertcat(*g)
         self._lbg, self._ubg = np.concatenate(lbg), np.concatenate(ubg)
         ng = g.shape[0]
@@ -345,6 +359,7 @@ class NMPC:
         lbx[self._iu] = -umax  # Table II, hard
         ubx[self._iu] = umax
         lbx[self._isig] = 0.0
+        lbx[self._irow] = 0.0
         self._lbx, self._ubx = lbx, ubx
         self._nw, self._ng = nw, ng
 
@@ -363,6 +378,10 @@ class NMPC:
         for n in range(N):
             m = min(n + 1, N - 1)
             shift_g[4 + 10 * n : 14 + 10 * n] = np.arange(4 + 10 * m, 14 + 10 * m)
+        row0 = 4 + 10 * N  # then K blocks of the safety half-spaces
+        for n in range(K):
+            m = row0 + nr * min(n + 1, K - 1)
+            shift_g[row0 + nr * n : row0 + nr * (n + 1)] = np.arange(m, m + nr)
         self._shift_g = shift_g
 
         nlp = {"x": w, "p": p, "f": cost, "g": g}
@@ -447,6 +466,7 @@ class NMPC:
         lam_g = ca.MX.sym("lam_g", nlp["g"].shape[0])
         reg = np.zeros(self._nw)
         reg[self._isig] = self.options.slack_hessian
+        reg[self._irow] = self.options.slack_hessian
         H = lam_f * ca.hessian(nlp["f"], w)[0] + ca.diag(ca.DM(reg))
         return ca.Function(
             "gn_hess", [w, p, lam_f, lam_g], [H], ["x", "p", "lam_f", "lam_g"], ["hess"]
@@ -488,6 +508,7 @@ class NMPC:
         vq_cam: np.ndarray,
         aq_cam: np.ndarray | None = None,
         u_applied: np.ndarray | None = None,
+        safety_rows: tuple[np.ndarray, np.ndarray] | None = None,
     ) -> NMPCResult:
         """One NMPC step at time t_k.
 
@@ -495,6 +516,8 @@ class NMPC:
         target velocity and acceleration in the camera frame (for u_d of (19)); u_applied: the
         input actually applied at the previous step if it differs from the NMPC's (e.g. after
         the CBF shield), used for the one-step prediction s_m,k of the error signal (16).
+        safety_rows: (A_c (k, 3), b (k,)) half-spaces A_c v <= b on the camera-frame velocity that
+        the plan must respect (L1-softened), k <= `NMPCConfig.safety_rows`; only with that > 0.
         """
         s = _vec("s", s, 4)
         if s[2] <= 0:
@@ -517,11 +540,12 @@ class NMPC:
                 cap = np.asarray(self.options.eps_max)
                 eps = np.clip(eps, -cap, cap)
         s_d = self.reference - eps
-        p = np.concatenate([s_rel, s_d, vq, aq])
+        w_d = self.turn_rate_reference(vq, aq)
+        p = np.concatenate([s_rel, s_d, vq, aq, [w_d], self._row_params(safety_rows)])
 
         solver = self._solver
         if self._w is None:
-            w0 = self._cold_start(s_rel, vq, aq)
+            w0 = self._cold_start(s_rel, vq, aq, w_d)
             args = {"x0": w0}
             solver = self._cold_solver
         else:
@@ -570,6 +594,23 @@ class NMPC:
             eps=eps,
         )
 
+    def _row_params(self, rows: tuple[np.ndarray, np.ndarray] | None) -> np.ndarray:
+        """Parameter block of the safety half-spaces; unused slots are 0 <= 1."""
+        nr = self.cfg.safety_rows
+        a, b = np.zeros((nr, 3)), np.ones(nr)
+        if rows is not None:
+            A_in, b_in = np.asarray(rows[0], float), np.asarray(rows[1], float).reshape(-1)
+            k = len(b_in)
+            if A_in.shape != (k, 3) or k > nr or not np.isfinite(A_in).all():
+                raise ValueError(
+                    f"safety_rows must be (A (k, 3), b (k,)) with k <= {nr} finite rows, got "
+                    f"shapes {np.shape(rows[0])}, {np.shape(rows[1])}"
+                )
+            if not np.isfinite(b_in).all():
+                raise ValueError(f"safety_rows b must be finite, got {b_in}")
+            a[:k], b[:k] = A_in, b_in
+        return np.concatenate([a.ravel(), b])  # row j = column j of the column-major reshape
+
     def _call(self, solver, args: dict) -> tuple[bool, dict | None, str, int]:
         """Run one nlpsol; success flag, solution, return status, iterations."""
         try:
@@ -585,12 +626,28 @@ class NMPC:
         ok = ok and bool(np.isfinite(sol["x"]).all())
         return ok, sol, status, int(stats.get("iter_count", 0))
 
-    def _cold_start(self, s_rel: np.ndarray, vq: np.ndarray, aq: np.ndarray) -> np.ndarray:
+    def turn_rate_reference(self, vq: np.ndarray, aq: np.ndarray) -> float:
+        """omega_cy of u_d in (19): 0 as in the paper, or with `NMPCConfig.yaw_rate_reference`
+        = 'target-turn' the target's turn rate -(v x a)_up / |v_h|^2 from the camera-frame
+        velocity and acceleration (camera y points down; its x-z plane is horizontal)."""
+        if self.cfg.yaw_rate_reference != "target-turn":
+            return 0.0
+        vx, vz, ax, az = float(vq[0]), float(vq[2]), float(aq[0]), float(aq[2])
+        v2 = vx * vx + vz * vz
+        if v2 < self.cfg.turn_rate_min_speed**2:
+            return 0.0
+        w = (vz * ax - vx * az) / v2
+        wmax = float(self.limits.scale[3])
+        return min(max(w, -wmax), wmax)
+
+    def _cold_start(
+        self, s_rel: np.ndarray, vq: np.ndarray, aq: np.ndarray, w_d: float = 0.0
+    ) -> np.ndarray:
         """Initial guess: move with the target (u = u_d), features stay where they are."""
         w0 = np.zeros(self._nw)
         w0[self._ix] = s_rel
         n = np.arange(self.N)[:, None] * self.cfg.dt
-        u_d = np.hstack([vq + aq * n, np.zeros((self.N, 1))])
+        u_d = np.hstack([vq + aq * n, np.full((self.N, 1), w_d)])
         w0[self._iu] = np.clip(u_d, -self.limits.scale, self.limits.scale)
         lo = np.array([self.bounds.x1[0], self.bounds.x2[0], self.bounds.x3[0]])
         hi = np.array([self.bounds.x1[1], self.bounds.x2[1], self.bounds.x3[1]])

@@ -100,6 +100,9 @@ class UKFConfig:
     """Weight (s^2) of the velocity residuals in the fit (Remark 2 fits position and velocity)."""
     fit_min_samples: int = 20
     """Fewer detected samples than this in the window: no fit, zero acceleration."""
+    fit_settle_time: float = 0.0
+    """Not in the paper: estimates of the first this-many seconds after reset are not fitted
+    (Remark 2), since V_q converging from its initial 0 reads as an acceleration there."""
     fit_every: int = 4
     """Refit every this many detected steps (the fit costs ~30 us; 20 Hz is plenty)."""
     max_target_accel: float = 3.0
@@ -150,8 +153,8 @@ class UKFConfig:
             raise ValueError(f"x3_bounds must satisfy 0 < lo < hi, got {self.x3_bounds}")
         if self.fit_order < 0 or self.fit_min_samples < self.fit_order + 1 or self.fit_every < 1:
             raise ValueError("need fit_order >= 0, fit_min_samples > fit_order, fit_every >= 1")
-        if self.fit_velocity_weight < 0:
-            raise ValueError("fit_velocity_weight must be >= 0")
+        if self.fit_velocity_weight < 0 or self.fit_settle_time < 0:
+            raise ValueError("fit_velocity_weight and fit_settle_time must be >= 0")
         if not self.truncated_variance_scale >= 1:
             raise ValueError(
                 f"truncated_variance_scale must be >= 1, got {self.truncated_variance_scale}"
@@ -520,6 +523,8 @@ class TargetEstimator:
         )
 
     def _record(self) -> None:
+        if self.t < self.cfg.fit_settle_time:
+            return
         self.history.add(self.t, self.ukf.x[4:7], self.ukf.x[7:10])
         self._detected_steps += 1
         if self._detected_steps % self.cfg.fit_every == 0:

@@ -219,11 +219,33 @@ class SafetyFilter:
         self._ub3 = np.full(3, self.v_max)
 
     # ----------------------------------------------------------------- public
-    def certify(self, u_nominal: np.ndarray, ctx: SafetyContext) -> tuple[np.ndarray, ShieldReport]:
+    def rows(self, ctx: SafetyContext) -> CBFRows:
+        """The CBF rows ``A V^g <= b`` of this context (global frame), as `certify` uses them."""
+        if not isinstance(ctx, SafetyContext):
+            raise ValueError(f"ctx must be a SafetyContext, got {type(ctx).__name__}")
+        return self._rows(ctx)
+
+    def camera_rows(self, rows: CBFRows, yaw: float, k: int) -> tuple[np.ndarray, np.ndarray]:
+        """Up to ``k`` rows as unit half-spaces ``a_c v_c <= b`` on the camera-frame velocity,
+        those closest to active first (smallest b); rows the speed bound implies are dropped."""
+        c, s = math.cos(yaw), math.sin(yaw)
+        Ac = rows.A @ np.array(((s, 0.0, c), (-c, 0.0, s), (0.0, -1.0, 0.0)))
+        norms = np.sqrt(np.einsum("ij,ij->i", Ac, Ac))
+        ok = norms >= 1e-12
+        bn = rows.b[ok] / norms[ok]
+        An = Ac[ok] / norms[ok, None]
+        order = np.argsort(bn, kind="stable")[:k]
+        order = order[bn[order] < self.alpha_v]
+        return An[order], bn[order]
+
+    def certify(
+        self, u_nominal: np.ndarray, ctx: SafetyContext, rows: CBFRows | None = None
+    ) -> tuple[np.ndarray, ShieldReport]:
         """Return the safe camera-frame action u = [v_cx, v_cy, v_cz, omega_cy] and a report.
 
         ``u_nominal`` is the camera-frame command in SI units (it may exceed Table II; it is then
-        projected). Raises ValueError only for malformed input.
+        projected). ``rows``: `rows(ctx)` if the caller has already built them. Raises ValueError
+        only for malformed input.
         """
         t0 = time.perf_counter()
         u = np.asarray(u_nominal, dtype=float)
@@ -235,7 +257,8 @@ class SafetyFilter:
             raise ValueError(f"u_nominal must be finite, got {u}")
         if not isinstance(ctx, SafetyContext):
             raise ValueError(f"ctx must be a SafetyContext, got {type(ctx).__name__}")
-        rows = self._rows(ctx)
+        if rows is None:
+            rows = self._rows(ctx)
         vx, vy, vz, wn = u.tolist()
         c, s = math.cos(ctx.yaw), math.sin(ctx.yaw)
         w = min(max(wn, -self.w_max), self.w_max)

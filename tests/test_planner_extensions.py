@@ -1,0 +1,182 @@
+"""Tests of the expert's extensions beyond the paper: the turn-rate u_d, the shield's half-spaces in
+the NMPC plan, and the settle time of the dropout motion fit."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from uavtrack_env.config import DT, CBFConfig, ControlLimits, NMPCConfig
+from uavtrack_env.control import NMPC
+from uavtrack_env.estimation import Measurement, TargetEstimator, UKFConfig
+from uavtrack_env.geometry import cam_to_world_vec, world_to_cam_vec
+from uavtrack_env.safety import SafetyContext, SafetyFilter
+
+REF = np.array([0.0, 0.0, 0.1, math.pi / 2])
+W_MAX = ControlLimits().scale[3]
+
+
+@pytest.fixture(scope="module")
+def turning() -> NMPC:
+    return NMPC(REF, NMPCConfig(yaw_rate_reference="target-turn"), error_signal=False)
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_turn_rate_equals_the_finite_difference_heading_rate(turning: NMPC, seed: int) -> None:
+    """omega_cy of u_d = -d(heading)/dt of the target (omega_z^g = -omega_cy), from camera-frame
+    v and a; checked against a central difference of atan2 along v + a t."""
+    rng = np.random.default_rng(seed)
+    v = np.r_[rng.uniform(-2, 2, 2), 0.0]
+    if np.hypot(v[0], v[1]) < 0.5:
+        v[0] += 1.0
+    a = np.r_[rng.uniform(-0.3, 0.3, 2), rng.uniform(-0.1, 0.1)]
+    yaw = rng.uniform(-math.pi, math.pi)
+    h = 1e-5
+    heading = [math.atan2(*(v + a * t)[1::-1]) for t in (-h, h)]
+    rate = (heading[1] - heading[0]) / (2 * h)
+    expected = float(np.clip(-rate, -W_MAX, W_MAX))
+    got = turning.turn_rate_reference(world_to_cam_vec(v, yaw), world_to_cam_vec(a, yaw))
+    assert got == pytest.approx(expected, abs=1e-7)
+
+
+def test_turn_rate_is_zero_for_the_paper_and_for_a_slow_target(turning: NMPC) -> None:
+    vq, aq = np.array([1.0, 0.0, 0.5]), np.array([0.0, 0.0, 0.5])
+    assert turning.turn_rate_reference(vq, aq) != 0.0
+    assert NMPC(REF, error_signal=False).turn_rate_reference(vq, aq) == 0.0
+    assert turning.turn_rate_reference(0.1 * vq, aq) == 0.0  # below turn_rate_min_speed
+
+
+def test_turn_rate_reference_moves_the_planned_yaw_rate_towards_it(turning: NMPC) -> None:
+    """At s = s*, R_u pulls omega towards u_d's yaw rate: 'target-turn' plans a yaw rate of the
+    turn's sign, the paper's u_d (omega = 0) a smaller one."""
+    paper = NMPC(REF, error_signal=False)
+    vq, aq = np.array([1.0, 0.0, 0.0]), np.array([0.0, 0.0, 0.3])
+    w_d = turning.turn_rate_reference(vq, aq)
+    turning.reset()
+    u_turn = turning.solve(REF, vq, aq).u
+    u_paper = paper.solve(REF, vq, aq).u
+    assert abs(w_d) > 0.1
+    assert np.sign(u_turn[3] - u_paper[3]) == np.sign(w_d)
+    assert abs(u_turn[3] - u_paper[3]) > 0.2 * abs(w_d)
+
+
+@pytest.fixture(scope="module")
+def with_rows() -> NMPC:
+    return NMPC(REF, NMPCConfig(safety_rows=2, safety_row_stages=10), error_signal=False)
+
+
+S_OFF = np.array([0.3, -0.1, 0.15, REF[3] + 0.4])
+VQ = np.array([0.5, 0.0, 0.3])
+
+
+def test_safety_rows_hold_on_the_constrained_stages(with_rows: NMPC) -> None:
+    """A half-space that cuts the free plan's first velocity binds on stages 0..K-1 only."""
+    with_rows.reset()
+    free = with_rows.solve(S_OFF, VQ)
+    v0 = free.u[:3]
+    a = v0 / np.linalg.norm(v0)
+    b = 0.3 * float(np.linalg.norm(v0))
+    assert a @ v0 > b + 0.1  # the row cuts the free plan
+    with_rows.reset()
+    res = with_rows.solve(S_OFF, VQ, safety_rows=(a[None], np.array([b])))
+    assert res.success, res.status
+    along = res.predicted_u[:, :3] @ a
+    assert along[:10].max() <= b + 1e-6
+    assert along[10:].max() > b + 0.1  # the rest of the horizon is free
+
+
+def test_safety_rows_sqp_matches_ipopt() -> None:
+    """The default SQP and Ipopt give the same first input with two active half-spaces."""
+    cfg = NMPCConfig(safety_rows=2, safety_row_stages=10)
+    rows = (np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]), np.array([0.2, 0.1]))
+    sqp = NMPC(REF, cfg, error_signal=False)
+    for _ in range(3):  # cold Ipopt start, then warm SQP
+        res = sqp.solve(S_OFF, VQ, safety_rows=rows)
+    assert res.solver_used == "sqpmethod" and res.success, res.status
+    ref = NMPC(
+        REF, NMPCConfig(solver="ipopt", safety_rows=2, safety_row_stages=10), error_signal=False
+    )
+    out = ref.solve(S_OFF, VQ, safety_rows=rows)
+    assert out.success
+    np.testing.assert_allclose(res.u, out.u, atol=2e-3)
+    assert res.u[0] <= 0.2 + 1e-6 and res.u[2] <= 0.1 + 1e-6
+
+
+@pytest.mark.parametrize(
+    "rows, match",
+    [
+        ((np.zeros((3, 3)), np.zeros(3)), "k <= 2"),
+        ((np.zeros((2, 2)), np.zeros(2)), "k <= 2"),
+        ((np.full((1, 3), np.nan), np.zeros(1)), "finite"),
+        ((np.zeros((1, 3)), np.array([np.inf])), "b must be finite"),
+    ],
+)
+def test_bad_safety_rows_raise(with_rows: NMPC, rows, match: str) -> None:
+    with pytest.raises(ValueError, match=match):
+        with_rows.solve(S_OFF, VQ, safety_rows=rows)
+
+
+def test_safety_rows_without_slots_raise() -> None:
+    with pytest.raises(ValueError, match="k <= 0"):
+        NMPC(REF, error_signal=False).solve(S_OFF, VQ, safety_rows=(np.zeros((1, 3)), np.zeros(1)))
+
+
+@pytest.mark.parametrize(
+    "kw, match",
+    [
+        ({"safety_rows": -1}, "safety_rows must be >= 0"),
+        ({"safety_row_stages": 0}, "safety_row_stages"),
+        ({"safety_row_stages": 51}, "safety_row_stages"),
+        ({"yaw_rate_reference": "heading"}, "yaw_rate_reference"),
+        ({"turn_rate_min_speed": 0.0}, "turn_rate_min_speed"),
+    ],
+)
+def test_invalid_extension_config_is_rejected(kw: dict, match: str) -> None:
+    with pytest.raises(ValueError, match=match):
+        NMPCConfig(**kw)
+
+
+def test_camera_rows_are_the_normalised_global_rows_nearest_first() -> None:
+    """camera_rows(rows, yaw) = unit rows of A R(yaw), sorted by b; certify with given rows is
+    certify without."""
+    shield = SafetyFilter(CBFConfig())
+    p = np.array([0.0, 0.0, 4.0])
+    ctx = SafetyContext(
+        position=p,
+        yaw=0.7,
+        neighbours=p + np.array([[3.0, 0.5, 0.0], [-2.5, 2.0, 0.3]]),
+        obstacle_centers=p + np.array([[2.0, -2.0, 0.0], [-4.0, -1.0, 0.0]]),
+        obstacle_half_extents=np.full((2, 3), 0.5),
+        target_position=p + np.array([8.0, 1.0, -3.5]),
+    )
+    rows = shield.rows(ctx)
+    A, b = shield.camera_rows(rows, ctx.yaw, 3)
+    R = np.stack([cam_to_world_vec(e, ctx.yaw) for e in np.eye(3)], axis=1)  # V = R v_c
+    Ac = rows.A @ R
+    n = np.linalg.norm(Ac, axis=1)
+    order = np.argsort(rows.b / n)[:3]
+    assert len(rows.b) > 3
+    np.testing.assert_allclose(A, Ac[order] / n[order, None], atol=1e-12)
+    np.testing.assert_allclose(b, (rows.b / n)[order], atol=1e-12)
+    u_nom = np.array([2.0, 0.0, 3.0, 0.1])
+    u1, r1 = shield.certify(u_nom, ctx)
+    u2, r2 = shield.certify(u_nom, ctx, rows)
+    np.testing.assert_array_equal(u1, u2)
+    assert r1.status == r2.status
+
+
+def test_fit_ignores_the_settle_time() -> None:
+    """No samples enter the motion fit during fit_settle_time; afterwards they do."""
+    est = TargetEstimator(cfg=UKFConfig(fit_settle_time=0.5))
+    p, meas = np.array([-8.0, 0.0, 4.0]), Measurement(330.0, 300.0, 8.0, 3.1)
+    est.reset(meas, p, 0.0)
+    for _ in range(round(0.45 / DT)):
+        est.step(np.zeros(4), p, 0.0, meas)
+    assert len(est.history) == 0
+    for _ in range(round(0.2 / DT)):
+        est.step(np.zeros(4), p, 0.0, meas)
+    assert len(est.history) > 0
+    with pytest.raises(ValueError, match="fit_settle_time"):
+        UKFConfig(fit_settle_time=-1.0)
