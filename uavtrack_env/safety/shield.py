@@ -66,6 +66,14 @@ _PRIMAL_TOL = 1e-10
 below 0 over many steps at an active barrier; 1e-10 keeps the closed loop at ~1e-10."""
 
 
+def _in_camera_frame(A: np.ndarray, yaw: float) -> tuple[np.ndarray, np.ndarray]:
+    """Rows on V^g as rows on the camera-frame velocity (A R, R = cam_to_world(yaw)), and their
+    norms."""
+    c, s = math.cos(yaw), math.sin(yaw)
+    Ac = A @ np.array(((s, 0.0, c), (-c, 0.0, s), (0.0, -1.0, 0.0)))
+    return Ac, np.sqrt(np.einsum("ij,ij->i", Ac, Ac))
+
+
 @dataclass(frozen=True)
 class ShieldOptions:
     """Tunables of the shield that are not in the paper's Table IV."""
@@ -228,9 +236,7 @@ class SafetyFilter:
     def camera_rows(self, rows: CBFRows, yaw: float, k: int) -> tuple[np.ndarray, np.ndarray]:
         """Up to ``k`` rows as unit half-spaces ``a_c v_c <= b`` on the camera-frame velocity,
         those closest to active first (smallest b); rows the speed bound implies are dropped."""
-        c, s = math.cos(yaw), math.sin(yaw)
-        Ac = rows.A @ np.array(((s, 0.0, c), (-c, 0.0, s), (0.0, -1.0, 0.0)))
-        norms = np.sqrt(np.einsum("ij,ij->i", Ac, Ac))
+        Ac, norms = _in_camera_frame(rows.A, yaw)
         ok = norms >= 1e-12
         bn = rows.b[ok] / norms[ok]
         An = Ac[ok] / norms[ok, None]
@@ -278,9 +284,7 @@ class SafetyFilter:
                 )  # fmt: skip
 
         # Rows in camera coordinates (A V^g = A R v_c), normalised to unit normals.
-        R = np.array(((s, 0.0, c), (-c, 0.0, s), (0.0, -1.0, 0.0)))  # cam_to_world(yaw)
-        Ac = rows.A @ R
-        norms = np.sqrt(np.einsum("ij,ij->i", Ac, Ac))
+        Ac, norms = _in_camera_frame(rows.A, ctx.yaw)
         zero = norms < 1e-12
         scale = np.where(zero, 1.0, norms)
         bn = rows.b / scale
