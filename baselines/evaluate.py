@@ -189,6 +189,7 @@ def run_episode(args: argparse.Namespace, scenario: str, init: int, out: Path) -
     for stage in ("ukf", "nmpc", "qp"):
         times = getattr(policy, "timings", {}).get(stage, [])
         timing[stage] = 1e3 * float(np.median(times)) if times else math.nan
+    nmpc_cfg = planner_config(args)[0]
     metrics = {
         "scenario": scenario,
         "init": init,
@@ -200,7 +201,7 @@ def run_episode(args: argparse.Namespace, scenario: str, init: int, out: Path) -
         "viewpoint": not args.no_viewpoint,
         "planner": args.planner,
         **{
-            k: getattr(planner_config(args)[0], k)
+            k: getattr(nmpc_cfg, k)
             for k in ("terminal_weight", "yaw_rate_reference", "safety_rows", "safety_row_stages")
         },
         "uavs": rec.summary(),

@@ -39,6 +39,7 @@ from uavtrack_env.control import jit_cache
 from uavtrack_env.geometry import feature_rates, wrap_angle
 
 _TWO_PI = 2.0 * math.pi
+_NO_ROWS = np.zeros(0)
 
 
 @dataclass(frozen=True)
@@ -597,6 +598,8 @@ class NMPC:
     def _row_params(self, rows: tuple[np.ndarray, np.ndarray] | None) -> np.ndarray:
         """Parameter block of the safety half-spaces; unused slots are 0 <= 1."""
         nr = self.cfg.safety_rows
+        if nr == 0 and rows is None:  # the paper's NLP: no block
+            return _NO_ROWS
         a, b = np.zeros((nr, 3)), np.ones(nr)
         if rows is not None:
             A_in, b_in = np.asarray(rows[0], float), np.asarray(rows[1], float).reshape(-1)
