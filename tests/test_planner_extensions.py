@@ -4,13 +4,15 @@ the NMPC plan, and the settle time of the dropout motion fit."""
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
 
 from uavtrack_env.config import DT, CBFConfig, ControlLimits, NMPCConfig
-from uavtrack_env.control import NMPC
+from uavtrack_env.control import NMPC, NMPCOptions
 from uavtrack_env.estimation import Measurement, TargetEstimator, UKFConfig
+from uavtrack_env.expert import TUNED_NMPC
 from uavtrack_env.geometry import cam_to_world_vec, world_to_cam_vec
 from uavtrack_env.safety import SafetyContext, SafetyFilter
 
@@ -180,3 +182,24 @@ def test_fit_ignores_the_settle_time() -> None:
     assert len(est.history) > 0
     with pytest.raises(ValueError, match="fit_settle_time"):
         UKFConfig(fit_settle_time=-1.0)
+
+
+def test_tuned_sqp_solves_the_recorded_warm_start_that_made_qrqp_cycle() -> None:
+    """A warm start recorded in scenario C with the tuned planner (tests/data): with qrqp's
+    min_lam = 0 its QPs cycled and the SQP stopped ('Search_Direction_Becomes_Too_Small', casadi
+    3.8.2). With the default `NMPCOptions.qrqp_min_lam` the SQP converges, to Ipopt's solution."""
+    case = np.load(Path(__file__).parent / "data" / "qrqp_cycling_warm_start.npz")
+    ctl = NMPC(case["p"][4:8], TUNED_NMPC)
+    args = {k: case[k] for k in ("x0", "lam_g0", "lam_x0", "p")}
+    args.update(lbx=ctl._lbx, ubx=ctl._ubx, lbg=ctl._lbg, ubg=ctl._ubg)
+    ok, sol, status, _ = ctl._call(ctl._solver, args)
+    assert ok, status
+    ok_ref, ref, status_ref, _ = ctl._call(ctl._cold_solver, args)
+    assert ok_ref, status_ref
+    u, u_ref = sol["x"][ctl._iu[0]], ref["x"][ctl._iu[0]]
+    assert np.max(np.abs(u - u_ref)) < 2e-3, (u, u_ref)
+
+
+def test_qrqp_min_lam_must_be_non_negative() -> None:
+    with pytest.raises(ValueError, match="qrqp_min_lam"):
+        NMPCOptions(qrqp_min_lam=-1.0)

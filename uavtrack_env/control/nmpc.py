@@ -60,6 +60,11 @@ class NMPCOptions:
     """SQP/RTI Hessian: the constant Hessian of cost (18) ('gauss-newton') or the exact one."""
     qpsol: str = "qrqp"
     """CasADi QP plugin used by 'sqp' and 'rti'."""
+    qrqp_min_lam: float = 1e-3
+    """qrqp's ``min_lam``: warm-start multipliers below this start inactive. With 0 (qrqp's
+    default) the shifted multipliers of the plan's safety rows made qrqp cycle between two
+    degenerate active sets (146 SQP failures in 10 s of scenario C with the tuned planner, 12
+    with 1e-3; BENCHMARKS.md, session 7)."""
     tol: float = 1e-4
     """Primal and dual stopping tolerance of 'sqp'. 1e-4 stops after ~3 iterations instead of
     ~5 at 1e-6 and moves u_k by < 2e-5 in the benchmark loop (BENCHMARKS.md, session 5)."""
@@ -85,6 +90,8 @@ class NMPCOptions:
             raise ValueError(f"eps_max must be 4 non-negative numbers, got {self.eps_max}")
         if self.slack_weight <= 0 or self.tol <= 0 or self.ipopt_tol <= 0:
             raise ValueError("slack_weight, tol and ipopt_tol must be > 0")
+        if not self.qrqp_min_lam >= 0:
+            raise ValueError(f"qrqp_min_lam must be >= 0, got {self.qrqp_min_lam}")
         if self.max_fallback_steps < 0:
             raise ValueError("max_fallback_steps must be >= 0")
 
@@ -422,7 +429,7 @@ class NMPC:
                 "tol_pr": opt.tol,
                 "tol_du": opt.tol,
                 "max_iter": 1 if solver == "rti" else cfg.max_iter,
-                "qpsol_options": self._qp_options(opt.qpsol),
+                "qpsol_options": self._qp_options(opt.qpsol, opt.qrqp_min_lam),
             }
             if opt.hessian == "gauss-newton":
                 sopts["hess_lag"] = self._gauss_newton_hessian(nlp)
@@ -444,10 +451,11 @@ class NMPC:
         return 0.5 * (P + P.T)
 
     @staticmethod
-    def _qp_options(qpsol: str) -> dict:
+    def _qp_options(qpsol: str, min_lam: float = 0.0) -> dict:
         base: dict = {"error_on_fail": False}
         if qpsol == "qrqp":
             base.update(print_iter=False, print_header=False, print_info=False, max_iter=200)
+            base["min_lam"] = min_lam
         elif qpsol in ("osqp", "proxqp", "daqp", "hpipm", "qpoases"):
             base["print_time"] = False
             if qpsol == "qpoases":
