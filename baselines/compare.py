@@ -282,6 +282,13 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     ap.add_argument("--duration", type=float, default=60.0, help="episode length in s")
     ap.add_argument("--dynamics", default="integrator", choices=["integrator", "lag"])
     ap.add_argument("--no-expert", action="store_true", help="skip the expert (slowest)")
+    ap.add_argument(
+        "--planner",
+        default="paper",
+        choices=["paper", "tuned"],
+        help="the expert's NMPC: 'paper' (the expert train.bc clones; the README's comparisons) "
+        "or 'tuned' (baselines.evaluate's default)",
+    )
     ap.add_argument("--out", type=Path, default=Path("runs/compare"))
     ap.add_argument("--no-progress", action="store_true", help="hide the progress bars")
     args = ap.parse_args(argv)
@@ -313,7 +320,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
     steps = max(1, round(args.duration / DT))
     entrants: list[tuple[str, bool, Callable[[Any], Policy]]] = []
     if not args.no_expert:
-        eargs.policy = "expert"
+        eargs.policy, eargs.planner = "expert", args.planner
         entrants.append(("expert", False, lambda env: evaluate._make_policy(eargs, env)))
     for run_dir, label in ((args.ppo, "PPO"), (args.ppo_shield, "PPO + shield")):
         if run_dir is not None:

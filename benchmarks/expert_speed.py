@@ -1,10 +1,11 @@
 """Median time of each expert stage and of the whole 3-UAV expert step, scenario A.
 
-    python benchmarks/expert_speed.py [--steps 800] [--solvers sqp ipopt] [--jit]
+    python benchmarks/expert_speed.py [--steps 800] [--planners tuned paper] [--solvers sqp ipopt]
+        [--jit]
 
 Runs the closed loop (lag dynamics, detector noise on) and prints per-UAV medians of the UKF,
 NMPC and CBF-QP, the whole expert step for 3 UAVs, the env step, and the real-time factor at 80 Hz
-of expert alone and of expert + env.
+of expert alone and of expert + env, for each planner (`expert.PLANNERS`) and NMPC solver.
 """
 
 from __future__ import annotations
@@ -13,18 +14,21 @@ import argparse
 import platform
 import statistics
 import time
+from dataclasses import replace
 
 from uavtrack_env import uavtrack_v0
-from uavtrack_env.config import NMPCConfig
 from uavtrack_env.control import NMPCOptions
-from uavtrack_env.expert import ExpertPolicy
+from uavtrack_env.expert import PLANNERS, ExpertPolicy
 
 
-def run(solver: str, steps: int, jit: bool = False) -> dict[str, float]:
+def run(planner: str, solver: str, steps: int, jit: bool = False) -> dict[str, float]:
     env = uavtrack_v0.parallel_env(scenario="A", max_cycles=steps, dynamics={"model": "lag"})
     obs, infos = env.reset(seed=0)
     options = NMPCOptions(jit=jit)  # one build per solver, shared by the UAVs
-    expert = ExpertPolicy.from_env(env, nmpc=NMPCConfig(solver=solver), nmpc_options=options)
+    nmpc, ukf = PLANNERS[planner]
+    expert = ExpertPolicy.from_env(
+        env, nmpc=replace(nmpc, solver=solver), ukf=ukf, nmpc_options=options
+    )
     whole, env_t = [], []
     while env.agents:
         t0 = time.perf_counter()
@@ -43,6 +47,7 @@ def run(solver: str, steps: int, jit: bool = False) -> dict[str, float]:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--steps", type=int, default=800)
+    ap.add_argument("--planners", nargs="+", default=["tuned", "paper"], choices=list(PLANNERS))
     ap.add_argument("--solvers", nargs="+", default=["sqp", "ipopt"])
     ap.add_argument(
         "--jit", action="store_true", help="also each solver with the NLP JIT-compiled (needs gcc)"
@@ -50,25 +55,29 @@ def main() -> None:
     args = ap.parse_args()
     print(f"machine: {platform.machine()}, python {platform.python_version()}, {args.steps} steps")
     period = 1e3 / 80.0
-    rows = {s: run(s, args.steps) for s in args.solvers}
-    if args.jit:
-        rows.update({f"{s}+jit": run(s, args.steps, jit=True) for s in args.solvers})
+    rows = {}
+    for p in args.planners:
+        for s in args.solvers:
+            rows[f"{p}/{s}"] = run(p, s, args.steps)
+            if args.jit:
+                rows[f"{p}/{s}+jit"] = run(p, s, args.steps, jit=True)
     cols = ["ukf", "nmpc", "qp", "expert_step_3uav", "env_step"]
     print(
-        f"{'solver':>10} " + " ".join(f"{c:>17}" for c in cols) + f" {'RT x (expert)':>14}"
+        f"{'planner/solver':>16} " + " ".join(f"{c:>17}" for c in cols) + f" {'RT x (expert)':>14}"
         f" {'RT x (+env)':>12}"
     )
     for s, m in rows.items():
         rt = period / m["expert_step_3uav"]
         rt_env = period / (m["expert_step_3uav"] + m["env_step"])
         print(
-            f"{s:>10} " + " ".join(f"{m[c]:>14.3f} ms" for c in cols) + f" {rt:>14.2f}"
+            f"{s:>16} " + " ".join(f"{m[c]:>14.3f} ms" for c in cols) + f" {rt:>14.2f}"
             f" {rt_env:>12.2f}"
         )
-    if "ipopt" in rows and len(rows) > 1:
-        for s in rows:
-            if s != "ipopt":
-                print(f"NMPC ipopt / {s}: {rows['ipopt']['nmpc'] / rows[s]['nmpc']:.1f}x")
+    for p in args.planners:
+        ipopt = rows.get(f"{p}/ipopt")
+        for s, m in rows.items():
+            if ipopt is not None and s.startswith(f"{p}/") and s != f"{p}/ipopt":
+                print(f"NMPC {p}/ipopt / {s}: {ipopt['nmpc'] / m['nmpc']:.1f}x")
 
 
 if __name__ == "__main__":

@@ -11,7 +11,7 @@ import pytest
 from baselines import evaluate
 from tests.conftest import METRICS_UAV_KEYS
 from uavtrack_env import uavtrack_v0
-from uavtrack_env.expert import ExpertPolicy
+from uavtrack_env.expert import PLANNERS, ExpertPolicy
 
 
 def test_evaluate_cli_writes_valid_metrics(tmp_path):
@@ -47,11 +47,13 @@ def test_expert_never_reads_ground_truth():
         obs, _, _, _, infos = env.step(act)
 
 
-def test_expert_tracks_and_stays_safe_from_a_perturbed_start():
+@pytest.mark.parametrize("planner", ["paper", "tuned"])
+def test_expert_tracks_and_stays_safe_from_a_perturbed_start(planner: str):
     """Closed loop, 10 s of scenario A with the lag model: features converge, no violation."""
     env = uavtrack_v0.parallel_env(scenario="A", max_cycles=800, dynamics={"model": "lag"})
     obs, infos = env.reset(seed=1)
-    expert = ExpertPolicy.from_env(env)
+    nmpc, ukf = PLANNERS[planner]
+    expert = ExpertPolicy.from_env(env, nmpc=nmpc, ukf=ukf)
     errors = []
     while env.agents:
         obs, _, term, _, infos = env.step(expert(obs, infos))

@@ -32,6 +32,12 @@ turn rate in u_d, and the shield's 4 nearest-active CBF rows on the plan's first
 TUNED_UKF = replace(EXPERT_UKF, fit_settle_time=2.0)
 """The 'tuned' planner's filter: the turn rate comes from the fitted acceleration, so the first
 2 s of estimates, while V_q converges from 0, are left out of the fit."""
+PLANNERS: dict[str, tuple[NMPCConfig, UKFConfig]] = {
+    "paper": (NMPCConfig(), EXPERT_UKF),
+    "tuned": (TUNED_NMPC, TUNED_UKF),
+}
+"""(NMPC, UKF) settings by planner name: 'paper' is eqs. (18)-(19) exactly (the default of
+`ExpertPolicy`), 'tuned' the default of ``baselines.evaluate`` (docs/conventions.md)."""
 
 
 @dataclass
