@@ -63,7 +63,7 @@ class NMPCOptions:
     qrqp_min_lam: float = 1e-3
     """qrqp's ``min_lam``: warm-start multipliers below this start inactive. With 0 (qrqp's
     default) the shifted multipliers of the plan's safety rows made qrqp cycle between two
-    degenerate active sets (146 SQP failures in 10 s of scenario C with the tuned planner, 12
+    degenerate active sets (146 SQP failures in the first 12 s of C0 with the tuned planner, 12
     with 1e-3; BENCHMARKS.md, session 7)."""
     tol: float = 1e-4
     """Primal and dual stopping tolerance of 'sqp'. 1e-4 stops after ~3 iterations instead of
