@@ -20,6 +20,7 @@ def test_evaluate_cli_writes_valid_metrics(tmp_path):
     m = json.loads((out / "metrics.json").read_text())
     assert {"scenario", "init", "seed", "duration_s", "uavs", "timing_ms"} <= set(m)
     assert m["scenario"] == "A" and m["init"] == 0 and m["seed"] == 0
+    assert m["planner"] == "tuned" and m["safety_rows"] == 4  # the CLI's default planner
     assert m["duration_s"] == pytest.approx(1.0)
     assert set(m["uavs"]) == {"uav_0", "uav_1", "uav_2"}
     for r in m["uavs"].values():
