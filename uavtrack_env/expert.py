@@ -58,7 +58,8 @@ class ExpertPolicy:
     Actions are the env's normalised [-1, 1]^4. ``timings[stage]`` holds per-agent-step wall
     times (s) of 'ukf', 'nmpc' (with the viewpoint layer) and 'qp'. ``use_cbf=False`` skips the
     QP (the ``--no-cbf`` ablation); ``viewpoint`` configures the x2* layer that looks over tall
-    boxes (not in the paper; `uavtrack_env.control.viewpoint`).
+    boxes (not in the paper; `uavtrack_env.control.viewpoint`). ``nmpc`` and ``ukf`` default to
+    the paper's planner; ``PLANNERS["tuned"]`` gives baselines.evaluate's default.
     """
 
     def __init__(
