@@ -75,8 +75,10 @@ def main() -> None:
         )
     for p in args.planners:
         ipopt = rows.get(f"{p}/ipopt")
+        if ipopt is None:
+            continue
         for s, m in rows.items():
-            if ipopt is not None and s.startswith(f"{p}/") and s != f"{p}/ipopt":
+            if s.startswith(f"{p}/") and s != f"{p}/ipopt":
                 print(f"NMPC {p}/ipopt / {s}: {ipopt['nmpc'] / m['nmpc']:.1f}x")
 
 

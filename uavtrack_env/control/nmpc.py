@@ -451,7 +451,7 @@ class NMPC:
         return 0.5 * (P + P.T)
 
     @staticmethod
-    def _qp_options(qpsol: str, min_lam: float = 0.0) -> dict:
+    def _qp_options(qpsol: str, min_lam: float) -> dict:
         base: dict = {"error_on_fail": False}
         if qpsol == "qrqp":
             base.update(print_iter=False, print_header=False, print_info=False, max_iter=200)
