@@ -59,6 +59,13 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         choices=["paper", "moving-target"],
         help="eq. (43) or not",
     )
+    ap.add_argument(
+        "--occlusion-point",
+        default=None,
+        choices=["centre", "axis", "edges"],
+        help="occluder point p_o of (38): box centre (paper), least-angle point of its vertical "
+        "axis (default) or of its 12 edges",
+    )
     ap.add_argument("--nmpc-solver", default="sqp", choices=["sqp", "ipopt", "rti"])
     ap.add_argument(
         "--planner",
@@ -112,6 +119,8 @@ def _env_kwargs(args: argparse.Namespace, scenario: str, init: int, steps: int) 
         cbf["gamma_o"] = args.gamma_o
     if args.occlusion_model is not None:
         cbf["occlusion_model"] = args.occlusion_model
+    if args.occlusion_point is not None:
+        cbf["occlusion_point"] = args.occlusion_point
     kw = {
         "scenario": scenario,
         "init": init,
@@ -201,6 +210,8 @@ def run_episode(args: argparse.Namespace, scenario: str, init: int, out: Path) -
         "cbf": not args.no_cbf,
         "viewpoint": not args.no_viewpoint,
         "planner": args.planner,
+        "occlusion_model": env.config.cbf.occlusion_model,
+        "occlusion_point": env.config.cbf.occlusion_point,
         **{
             k: getattr(nmpc_cfg, k)
             for k in ("terminal_weight", "yaw_rate_reference", "safety_rows", "safety_row_stages")
@@ -230,7 +241,12 @@ def run_episode(args: argparse.Namespace, scenario: str, init: int, out: Path) -
 
 
 def table(runs: list[dict], paper: bool = False) -> str:
-    """A markdown table in the form of Table VI (with the paper's RMS errors if ``paper``)."""
+    """A markdown table in the form of Table VI (with the paper's RMS errors if ``paper``).
+
+    Beside the paper's columns: the least occlusion angle theta of (38) over N_oi (theta* = 30
+    deg) and the largest share of the car's ray-cast points hidden (partial occlusion; the
+    Occlusion column is N only when more than half is hidden).
+    """
     yn = {True: "Y", False: "N"}
     head = (
         "| Scenario | UAV | Initial (x, y, heading) | Occlusion | Connectivity | Collision "
@@ -240,6 +256,8 @@ def table(runs: list[dict], paper: bool = False) -> str:
     if paper:
         head += " paper U | paper V |"
         sep += "---|---|"
+    head += " min theta (deg) | max hidden |"
+    sep += "---|---|"
     lines = [head, sep]
     for m in runs:
         for i, (agent, r) in enumerate(m["uavs"].items()):
@@ -252,6 +270,8 @@ def table(runs: list[dict], paper: bool = False) -> str:
             if paper:
                 pu, pv = TABLE_VI[(m["scenario"], m["init"])][i]
                 row += f" {pu:.2f} | {pv:.2f} |"
+            hidden = 100 * r["max_blocked_fraction"]
+            row += f" {r['min_occlusion_angle_deg']:.1f} | {hidden:.0f} % |"
             lines.append(row)
     return "\n".join(lines)
 

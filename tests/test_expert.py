@@ -21,6 +21,7 @@ def test_evaluate_cli_writes_valid_metrics(tmp_path):
     assert {"scenario", "init", "seed", "duration_s", "uavs", "timing_ms"} <= set(m)
     assert m["scenario"] == "A" and m["init"] == 0 and m["seed"] == 0
     assert m["planner"] == "tuned" and m["safety_rows"] == 4  # the CLI's default planner
+    assert m["occlusion_model"] == "paper" and m["occlusion_point"] == "axis"
     assert m["duration_s"] == pytest.approx(1.0)
     assert set(m["uavs"]) == {"uav_0", "uav_1", "uav_2"}
     for r in m["uavs"].values():
@@ -28,6 +29,8 @@ def test_evaluate_cli_writes_valid_metrics(tmp_path):
         assert all(math.isfinite(r[k]) for k in ("rms_u_px", "rms_v_px", "rms_depth_m"))
         assert r["collision_ok"] and r["connectivity_ok"]
         assert r["detected_fraction"] > 0.9
+        assert 0.0 <= r["max_blocked_fraction"] <= 1.0
+        assert r["unobstructed_ok"] == (r["max_blocked_fraction"] == 0.0)
     assert {"ukf", "nmpc", "qp", "env"} <= set(m["timing_ms"])
     assert all(v > 0 for v in m["timing_ms"].values())
     assert (out / "table.md").read_text().count("| A0 |") == 3
@@ -66,4 +69,15 @@ def test_expert_tracks_and_stays_safe_from_a_perturbed_start(planner: str):
     start = err[0].max()
     assert start > 40.0  # the UAVs start low: a large V error to remove
     assert err[-80:].max() < 25.0  # last second: within 25 px in U and V
+    env.close()
+
+
+def test_evaluate_cli_passes_the_occlusion_options_to_the_env():
+    args = evaluate.parse_args(
+        ["--occlusion-model", "moving-target", "--occlusion-point", "edges", "--gamma-o", "0.5"]
+    )
+    env = uavtrack_v0.parallel_env(**evaluate._env_kwargs(args, "A", 0, 10))
+    cbf = env.config.cbf
+    assert (cbf.occlusion_model, cbf.occlusion_point) == ("moving-target", "edges")
+    assert cbf.gamma_o == 0.5
     env.close()

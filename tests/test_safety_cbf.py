@@ -17,6 +17,7 @@ from uavtrack_env.safety.cbf import (
     OCCLUSION,
     TARGET,
     UAV,
+    occluder_points,
 )
 
 EPS = 1e-6
@@ -201,6 +202,63 @@ def test_axis_occlusion_rows_with_size_margin_match_finite_differences(model, se
             p + t * V, c[j], hx[j], q + t * vq - (p + t * V), ts
         )
     check_family(rows, OCCLUSION, h_of, rng)
+
+
+def edges_occl_h(p, center, half, n, theta_star):
+    """Independent h of the 'edges' occluder: the least theta over the box's 12 edges, each
+    minimised numerically, minus theta*."""
+    corners = [center + half * (2 * np.array(s) - 1) for s in np.ndindex(2, 2, 2)]
+    best = np.inf
+    for a in corners:
+        for b in corners:
+            if np.count_nonzero(a != b) != 1:  # an edge joins corners differing on one axis
+                continue
+            seg = lambda t, a=a, b=b: occl_h(p, a + t * (b - a), n, 0.0)  # noqa: E731
+            res = minimize_scalar(seg, bounds=(0, 1), method="bounded", options={"xatol": 1e-12})
+            best = min(best, seg(0.0), seg(1.0), seg(res.x))
+    return best - theta_star
+
+
+@pytest.mark.parametrize("model", ["paper", "moving-target"])
+@pytest.mark.parametrize("seed", range(3))
+def test_edges_occlusion_rows_match_finite_differences(model, seed):
+    """'edges' occluder: h equals an independent minimisation over the 12 edges and its rows
+    the finite-difference rate."""
+    rng = np.random.default_rng(400 + seed)
+    cbf = CBFConfig(occlusion_model=model, occlusion_point="edges")
+    ctx = random_context(rng, occlusion_model=model, moving=True)
+    rows = build_rows(ctx, cbf)
+    p, c, hx = ctx.position, ctx.obstacle_centers, ctx.obstacle_half_extents
+    q, vq, ts = ctx.target_position, ctx.target_velocity, cbf.theta_star
+    if model == "paper":
+        h_of = lambda j, V, t: edges_occl_h(p + t * V, c[j], hx[j], q - p, ts)  # noqa: E731
+    else:
+        h_of = lambda j, V, t: edges_occl_h(  # noqa: E731
+            p + t * V, c[j], hx[j], q + t * vq - (p + t * V), ts
+        )
+    check_family(rows, OCCLUSION, h_of, rng)
+
+
+@pytest.mark.parametrize("seed", range(20))
+def test_edges_occluder_has_the_least_angle_of_the_box(seed):
+    """Where the sight line misses the box, no point of its surface is closer in angle to the
+    line of sight than the 'edges' point, and the point lies on the box's surface."""
+    rng = np.random.default_rng(500 + seed)
+    p, q = rng.uniform(-6, 6, 3), rng.uniform(-6, 6, 3)
+    center, half = rng.uniform(-4, 4, 3), rng.uniform(0.2, 2.0, 3)
+    n = q - p
+    point = occluder_points(p, center[None], half[None], q, "edges")[0]
+    local = np.abs(point - center) / half
+    assert local.max() == pytest.approx(1.0) and np.count_nonzero(np.isclose(local, 1.0)) >= 2
+    grid = np.linspace(-1.0, 1.0, 61)
+    cube = np.stack(np.meshgrid(grid, grid, grid, indexing="ij"), -1).reshape(-1, 3)
+    surface = center + half * cube[(np.abs(cube) == 1.0).any(axis=1)]
+    d = surface - p
+    angles = np.arccos(np.clip(d @ n / (np.linalg.norm(d, axis=1) * np.linalg.norm(n)), -1, 1))
+    ray_hits_box = angles.min() < 0.05 or (np.abs(p - center) < half).all()
+    if not ray_hits_box:
+        assert occl_h(p, point, n, 0.0) <= angles.min() + 1e-9
+        assert occl_h(p, point, n, 0.0) >= angles.min() - 0.02  # grid spacing
 
 
 def test_neighbour_sets_follow_the_paper():

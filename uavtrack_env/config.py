@@ -184,9 +184,10 @@ class CBFConfig:
     """Not in the paper: CBF rate of the altitude floor."""
     occlusion_model: Literal["paper", "moving-target"] = "paper"
     """'paper': eq. (43), n-dot = 0; 'moving-target': n-dot from the estimated target velocity."""
-    occlusion_point: Literal["centre", "axis"] = "axis"
-    """Occluder point p_o of eq. (38): the box 'centre' (paper) or the point of its vertical axis
-    closest in angle to the line of sight ('axis'; tall boxes are not points)."""
+    occlusion_point: Literal["centre", "axis", "edges"] = "axis"
+    """Occluder point p_o of eq. (38): the box 'centre' (paper), or the point closest in angle to
+    the line of sight on its vertical axis ('axis'; tall boxes are not points) or on its 12 edges
+    ('edges'; wide boxes close to the UAV are not points either)."""
     occlusion_size_margin: bool = False
     """Not in the paper: widen theta* by the box's angular radius asin(r_xy / |p_o - p|)."""
 
@@ -194,8 +195,8 @@ class CBFConfig:
         _require(0 < self.r_s < self.d_s <= self.r_c, "need 0 < R_s < D_s <= R_c (eq. 27)")
         _require(0 < self.theta_star_deg < 90, "theta* must lie in (0, 90) degrees")
         _require(
-            self.occlusion_point in ("centre", "axis"),
-            f"occlusion_point must be 'centre' or 'axis', got {self.occlusion_point!r}",
+            self.occlusion_point in ("centre", "axis", "edges"),
+            f"occlusion_point must be 'centre', 'axis' or 'edges', got {self.occlusion_point!r}",
         )
         for name in ("gamma_s", "gamma_c", "gamma_o", "alpha_v", "alpha_omega", "gamma_z"):
             _require(getattr(self, name) > 0, f"{name} must be > 0, got {getattr(self, name)}")

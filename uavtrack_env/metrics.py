@@ -30,6 +30,7 @@ class AgentTrace:
     collision: list[bool] = field(default_factory=list)
     disconnection: list[bool] = field(default_factory=list)
     occlusion: list[bool] = field(default_factory=list)
+    blocked_fraction: list[float] = field(default_factory=list)
     slack: list[float] = field(default_factory=list)
 
 
@@ -73,6 +74,7 @@ class EpisodeRecorder:
             tr.occlusion_angles.append(truth["occlusion_angles"])
             tr.occlusion_candidates.append(truth["occlusion_candidates"])
             tr.detected.append(meas["detected"])
+            tr.blocked_fraction.append(truth["blocked_fraction"])
             for k in ("collision", "disconnection", "occlusion"):
                 getattr(tr, k).append(info["violations"][k])
             tr.slack.append(0.0 if slacks is None else float(slacks.get(agent, 0.0)))
@@ -105,6 +107,8 @@ class EpisodeRecorder:
                 "collision_ok": not any(tr.collision),
                 "connectivity_ok": not any(tr.disconnection),
                 "occlusion_ok": not any(tr.occlusion),
+                "unobstructed_ok": not np.any(np.array(tr.blocked_fraction) > 0.0),
+                "max_blocked_fraction": float(np.max(tr.blocked_fraction)),
                 "theta_ok": bool(not theta or min(theta) >= self.theta_star - 1e-9),
                 "min_uav_dist_m": float(np.nanmin(others)) if others.size else math.inf,
                 "max_uav_dist_m": float(np.nanmax(others)) if others.size else 0.0,

@@ -334,31 +334,83 @@ def floor_rows(p: np.ndarray, cbf: CBFConfig):
 _FLOOR_A = np.array(((0.0, 0.0, -1.0),))
 
 
+def _edge_geometry() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The 12 edges of a unit box: start corner signs (12, 3), unit directions (12, 3), and the
+    axis each edge runs along (12,)."""
+    starts, dirs, axes = [], [], []
+    for k in range(3):
+        for s1 in (-1.0, 1.0):
+            for s2 in (-1.0, 1.0):
+                sign = [s1, s2]
+                sign.insert(k, -1.0)
+                starts.append(sign)
+                dirs.append(np.eye(3)[k])
+                axes.append(k)
+    return np.array(starts), np.array(dirs), np.array(axes)
+
+
+_EDGE_START, _EDGE_DIR, _EDGE_AXIS = _edge_geometry()
+
+
+def _least_angle_on_segments(
+    w: np.ndarray, e: np.ndarray, length: np.ndarray, n: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Largest cos(angle to unit n) on segments p + w + t e, t in [0, length] (e unit); returns
+    (cos, t) per segment.
+
+    On a line cos = (a + b t) / sqrt(c0 + 2 c1 t + t^2) with a = w.n, b = e.n, c0 = |w|^2,
+    c1 = w.e; its only stationary point is t = (a c1 - b c0) / (b c1 - a), so the largest cos
+    on the segment is there (clipped) or at an end.
+    """
+    a = w @ n
+    b = e @ n
+    c0 = np.einsum("...i,...i->...", w, w)
+    c1 = np.einsum("...i,...i->...", w, e)
+    den = b * c1 - a
+    safe = np.where(np.abs(den) > 1e-12, den, 1e-12)
+    ts = np.stack(
+        [np.zeros_like(a), length, np.clip((a * c1 - b * c0) / safe, 0.0, length)], axis=-1
+    )
+    cos = (a[..., None] + b[..., None] * ts) / np.sqrt(
+        np.maximum(c0[..., None] + 2.0 * c1[..., None] * ts + ts * ts, 1e-300)
+    )
+    k = np.argmax(cos, axis=-1)[..., None]
+    return np.take_along_axis(cos, k, -1)[..., 0], np.take_along_axis(ts, k, -1)[..., 0]
+
+
 def occluder_points(
     p: np.ndarray, centers: np.ndarray, half: np.ndarray, q: np.ndarray, mode: str
 ) -> np.ndarray:
-    """p_o^j of eq. (38) per obstacle: its centre (paper), or on its vertical axis the point of
-    least angle to the line of sight n = q - p ('axis').
+    """p_o^j of eq. (38) per obstacle: its centre (paper), or the point of least angle to the
+    line of sight n = q - p on the box's vertical axis ('axis') or on its 12 edges ('edges').
 
-    On the line (c_x, c_y, z), cos(theta) = (a + t n_z) / sqrt(b^2 + t^2) with t = z - p_z,
-    a = horizontal part of (c - p).n/|n|, b its horizontal distance; its only stationary point is
-    t = n_z b^2 / a, so the largest cos on the box's height is at that point (clipped) or at an
-    end. theta is then the minimum over the axis, whose gradient at the minimiser is the gradient
-    at fixed z (Danskin), so the rows below stay exact.
+    theta is then the minimum over that set. Its gradient at the minimiser is the gradient of
+    theta at that fixed point (Danskin), so the rows of `occlusion_rows` stay exact. The 'edges'
+    minimum is the least angle of the whole box whenever the sight line misses the box (the
+    angle is quasi-convex on each face plane, so a face's minimum lies on its boundary).
     """
     if mode == "centre" or not len(centers):
         return centers
     n = q - p
     n = n / max(float(np.linalg.norm(n)), 1e-12)
-    w = centers[:, :2] - p[:2]
-    a = w @ n[:2]
-    b2 = np.einsum("ij,ij->i", w, w)
-    lo, hi = centers[:, 2] - half[:, 2] - p[2], centers[:, 2] + half[:, 2] - p[2]
-    safe_a = np.where(np.abs(a) > 1e-12, a, 1e-12)
-    t = np.stack([lo, hi, np.clip(n[2] * b2 / safe_a, lo, hi)], 1)  # (m, 3) candidates
-    cos = (a[:, None] + t * n[2]) / np.sqrt(b2[:, None] + t * t + 1e-300)
-    best = t[np.arange(len(t)), np.argmax(cos, axis=1)]
-    return np.column_stack([centers[:, :2], p[2] + best])
+    if mode == "axis":
+        # On the axis (c_x, c_y, z), with t = z - p_z: cos = (a + t n_z) / sqrt(b^2 + t^2),
+        # a = horizontal part of (c - p).n, b the horizontal distance (the formula below).
+        w = centers[:, :2] - p[:2]
+        a = w @ n[:2]
+        b2 = np.einsum("ij,ij->i", w, w)
+        lo, hi = centers[:, 2] - half[:, 2] - p[2], centers[:, 2] + half[:, 2] - p[2]
+        safe_a = np.where(np.abs(a) > 1e-12, a, 1e-12)
+        t = np.stack([lo, hi, np.clip(n[2] * b2 / safe_a, lo, hi)], 1)  # (m, 3) candidates
+        cos = (a[:, None] + t * n[2]) / np.sqrt(b2[:, None] + t * t + 1e-300)
+        best = t[np.arange(len(t)), np.argmax(cos, axis=1)]
+        return np.column_stack([centers[:, :2], p[2] + best])
+    starts = centers[:, None, :] + _EDGE_START * half[:, None, :]  # (m, 12, 3)
+    length = 2.0 * half[:, _EDGE_AXIS]  # (m, 12)
+    cos, t = _least_angle_on_segments(starts - p, _EDGE_DIR, length, n)
+    best = np.argmax(cos, axis=1)
+    rows = np.arange(len(centers))
+    return starts[rows, best] + t[rows, best, None] * _EDGE_DIR[best]
 
 
 def occlusion_rows(
