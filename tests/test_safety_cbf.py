@@ -314,3 +314,29 @@ def test_context_rejects_bad_input(kwargs):
     base = {"position": [0, 0, 3], "yaw": 0.0}
     with pytest.raises(ValueError):
         SafetyContext(**{**base, **kwargs})
+
+
+def _segment_hits_box(a, b, center, half) -> bool:
+    """Slab test: does the segment a -> b pass through the axis-aligned box?"""
+    d = b - a
+    with np.errstate(divide="ignore"):
+        t1, t2 = (center - half - a) / d, (center + half - a) / d
+    lo, hi = np.minimum(t1, t2).max(), np.maximum(t1, t2).min()
+    return bool(lo <= hi and hi >= 0.0 and lo <= 1.0)
+
+
+def test_edges_occluder_sees_a_cube_whose_axis_point_misses():
+    """Scenario B0, UAV3 at 18.7 s with --occlusion-model moving-target (traced in session 8):
+    a 1 m cube beside and below the UAV hides the car's lower far corner. Its axis point lies
+    outside the theta* cone, so the 'axis' barrier is satisfied; its nearest top edge lies
+    inside, so the 'edges' barrier is violated, as it should be."""
+    p = np.array([3.684, -3.408, 1.324])
+    q = np.array([8.173, -2.587, 0.75])  # car centre
+    center, half = np.array([5.0, -4.0, 0.5]), np.array([0.5, 0.5, 0.5])
+    corner = np.array([9.77, -3.75, 0.15])  # a ray-cast sample point of the car
+    assert _segment_hits_box(p, corner, center, half)  # the cube hides part of the car
+    ts = CBFConfig().theta_star
+    axis = occluder_points(p, center[None], half[None], q, "axis")[0]
+    edges = occluder_points(p, center[None], half[None], q, "edges")[0]
+    assert occl_h(p, axis, q - p, ts) > 0.0  # 34.5 deg: the axis barrier sees no danger
+    assert occl_h(p, edges, q - p, ts) < -np.radians(10)  # 13.4 deg, deep inside the cone
