@@ -281,7 +281,8 @@ def main(argv: list[str] | None = None) -> None:
     if args.all:
         rows = [(s, i) for s in ("A", "B", "C") for i in (0, 1)]
         runs = [
-            run_episode(args, s, i, args.out / f"{s}{i}") for s, i in tqdm(rows, desc="Table VI")
+            run_episode(args, s, i, args.out / f"{s}{i}")
+            for s, i in tqdm(rows, desc="Table VI", disable=args.no_progress)
         ]
         md = table(runs, paper=True)
         (args.out / "table.md").write_text(md + "\n")

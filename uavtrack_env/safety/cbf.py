@@ -394,8 +394,9 @@ def occluder_points(
     n = q - p
     n = n / max(float(np.linalg.norm(n)), 1e-12)
     if mode == "axis":
-        # On the axis (c_x, c_y, z), with t = z - p_z: cos = (a + t n_z) / sqrt(b^2 + t^2),
-        # a = horizontal part of (c - p).n, b the horizontal distance (the formula below).
+        # `_least_angle_on_segments` for the vertical axis, written out (the default path):
+        # with t = z - p_z, cos = (a + t n_z) / sqrt(b^2 + t^2), a the horizontal part of
+        # (c - p).n and b the horizontal distance; the stationary point is t = n_z b^2 / a.
         w = centers[:, :2] - p[:2]
         a = w @ n[:2]
         b2 = np.einsum("ij,ij->i", w, w)
