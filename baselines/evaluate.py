@@ -66,6 +66,12 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         help="occluder point p_o of (38): box centre (paper), least-angle point of its vertical "
         "axis (default) or of its 12 edges",
     )
+    ap.add_argument(
+        "--lag-aware-cbf",
+        action="store_true",
+        help="not in the paper: with --dynamics lag, certify with second-order CBF rows on the "
+        "actual velocity (ShieldOptions.lag_tau)",
+    )
     ap.add_argument("--nmpc-solver", default="sqp", choices=["sqp", "ipopt", "rti"])
     ap.add_argument(
         "--planner",
@@ -169,6 +175,7 @@ def _make_policy(args: argparse.Namespace, env):
             ukf=ukf,
             nmpc_options=NMPCOptions(jit=True) if args.jit else None,
             viewpoint=ViewpointConfig(enabled=not args.no_viewpoint),
+            lag_aware=args.lag_aware_cbf,
         )
     base = {"servo": VisualServoPolicy, "hover": HoverPolicy, "random": RandomPolicy}[args.policy]()
     return lambda obs, infos: {a: base(a, obs[a]) for a in obs}
@@ -212,6 +219,7 @@ def run_episode(args: argparse.Namespace, scenario: str, init: int, out: Path) -
         "planner": args.planner,
         "occlusion_model": env.config.cbf.occlusion_model,
         "occlusion_point": env.config.cbf.occlusion_point,
+        "lag_aware_cbf": args.lag_aware_cbf,
         **{
             k: getattr(nmpc_cfg, k)
             for k in ("terminal_weight", "yaw_rate_reference", "safety_rows", "safety_row_stages")

@@ -81,3 +81,24 @@ def test_evaluate_cli_passes_the_occlusion_options_to_the_env():
     assert (cbf.occlusion_model, cbf.occlusion_point) == ("moving-target", "edges")
     assert cbf.gamma_o == 0.5
     env.close()
+
+
+def test_lag_aware_expert_differences_messages_into_neighbour_velocities():
+    """With lag_aware and the lag model, the shield gets second-order rows and each UAV's
+    estimate of its neighbours' velocities, from consecutive messages, equals their velocity."""
+    env = uavtrack_v0.parallel_env(scenario="A", max_cycles=20, dynamics={"model": "lag"})
+    obs, infos = env.reset(seed=2)
+    expert = ExpertPolicy.from_env(env, lag_aware=True)
+    assert expert.shield.options.lag_tau == env.config.dynamics.tau
+    rng = np.random.default_rng(0)
+    for k in range(6):
+        st = expert.agents["uav_0"]
+        got = expert._neighbour_velocities(st, infos["uav_0"]["neighbours"])
+        if k >= 2:  # the UAVs are moving and the previous messages are known
+            for row, name in zip(got, infos["uav_0"]["neighbours"], strict=True):
+                np.testing.assert_allclose(row, infos[name]["own"]["velocity"], atol=1e-9)
+            assert np.abs(got).max() > 0.1
+        actions = {a: rng.uniform(-1, 1, 4).astype(np.float32) for a in env.agents}
+        obs, _, _, _, infos = env.step(actions)
+    assert ExpertPolicy.from_env(env).shield.options.lag_tau == 0.0  # off by default
+    env.close()

@@ -50,6 +50,8 @@ class AgentState:
     last_nmpc: NMPCResult | None = None
     last_report: ShieldReport | None = None
     last_u: np.ndarray = field(default_factory=lambda: np.zeros(4))
+    messages: dict[str, np.ndarray] = field(default_factory=dict)
+    """Neighbour positions received at the previous step (to difference into velocities)."""
 
 
 class ExpertPolicy:
@@ -60,6 +62,8 @@ class ExpertPolicy:
     QP (the ``--no-cbf`` ablation); ``viewpoint`` configures the x2* layer that looks over tall
     boxes (not in the paper; `uavtrack_env.control.viewpoint`). ``nmpc`` and ``ukf`` default to
     the paper's planner; ``PLANNERS["tuned"]`` gives baselines.evaluate's default.
+    ``lag_aware=True`` with the env's 'lag' dynamics certifies with second-order rows
+    (`ShieldOptions.lag_tau`), the neighbours' velocities differenced from their messages.
     """
 
     def __init__(
@@ -76,6 +80,7 @@ class ExpertPolicy:
         use_cbf: bool = True,
         viewpoint: ViewpointConfig | None = None,
         qp_solver: str | None = None,
+        lag_aware: bool = False,
         **shield_options,
     ) -> None:
         self.config = env_config
@@ -85,6 +90,9 @@ class ExpertPolicy:
         self.obstacle_half_extents = np.asarray(obstacle_half_extents, float).reshape(-1, 3)
         if qp_solver is not None:
             shield_options["solver"] = qp_solver
+        self.dt = DT
+        if lag_aware and env_config.dynamics.model == "lag":
+            shield_options["lag_tau"] = env_config.dynamics.tau
         # Certify with the RL shield's margins (R_s + 5 cm, R_c - 5 cm): the env counts d < R_s.
         cbf = shield_cbf(cbf or env_config.cbf, ShieldMargins())
         self.shield = SafetyFilter(cbf, env_config.limits, **shield_options)
@@ -128,6 +136,7 @@ class ExpertPolicy:
             st.tracker.reset()
             st.last_nmpc, st.last_report = None, None
             st.last_u = np.zeros(4)
+            st.messages = {}
             st.nmpc.reset()
             st.viewpoint.reset()
             st.nmpc.reference[1] = st.viewpoint.x2
@@ -147,7 +156,8 @@ class ExpertPolicy:
         t1 = time.perf_counter()
         plan_rows = rows = None
         if self.use_cbf:  # the CBF rows (47): the QP's, and with safety_rows also the plan's
-            ctx = safety_context(info, est, self.obstacle_centers, self.obstacle_half_extents)
+            nb_v = self._neighbour_velocities(st, info["neighbours"])
+            ctx = safety_context(info, est, self.obstacle_centers, self.obstacle_half_extents, nb_v)
             rows = self.shield.rows(ctx)
             if st.nmpc.cfg.safety_rows:
                 plan_rows = self.shield.camera_rows(rows, yaw, st.nmpc.cfg.safety_rows)
@@ -170,6 +180,19 @@ class ExpertPolicy:
         self.timings["qp"].append(t2 - t1 + t4 - t3)
         st.last_u = np.asarray(u, float)
         return np.clip(st.last_u / self.scale, -1.0, 1.0).astype(np.float32)
+
+    def _neighbour_velocities(self, st: AgentState, messages: dict) -> np.ndarray | None:
+        """Velocities of the neighbours heard now, differenced from their previous messages
+        (zero for a neighbour not heard at the previous step); None unless the rows need them."""
+        if not self.shield.options.lag_tau:
+            return None
+        out = np.zeros((len(messages), 3))
+        for k, (name, pos) in enumerate(messages.items()):
+            before = st.messages.get(name)
+            if before is not None:
+                out[k] = (np.asarray(pos) - before) / self.dt
+        st.messages = {name: np.array(pos, float) for name, pos in messages.items()}
+        return out
 
     def slacks(self) -> dict[str, float]:
         """The QP slack of each agent's last step (0 without a report)."""

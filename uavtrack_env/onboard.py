@@ -49,14 +49,18 @@ def safety_context(
     estimate: Estimate | None,
     obstacle_centers: np.ndarray,
     obstacle_half_extents: np.ndarray,
+    neighbour_velocities: np.ndarray | None = None,
 ) -> SafetyContext:
-    """The CBF-QP's view for one UAV: own pose, received positions, obstacles, target estimate."""
+    """The CBF-QP's view for one UAV: own pose and velocity, received positions (and, for
+    second-order rows, the neighbours' velocities), obstacles, target estimate."""
     own = info["own"]
     nb = info["neighbours"]
     return SafetyContext(
         position=own["position"],
         yaw=own["yaw"],
+        velocity=own["velocity"],
         neighbours=np.array(list(nb.values()), float).reshape(-1, 3),
+        neighbour_velocities=neighbour_velocities,
         obstacle_centers=obstacle_centers,
         obstacle_half_extents=obstacle_half_extents,
         target_position=None if estimate is None else estimate.target_position,

@@ -97,6 +97,10 @@ class SafetyContext:
     """Car yaw (rad); None: from the velocity estimate (0 when it is below 0.1 m/s)."""
     neighbour_ids: tuple[int, ...] | None = None
     """Optional agent ids of `neighbours`, used only to name rows ("uav:<id>")."""
+    velocity: np.ndarray | None = None
+    """(3,) own actual global velocity (IMU); needed only by second-order rows (``lag_tau``)."""
+    neighbour_velocities: np.ndarray | None = None
+    """(k, 3) velocities of `neighbours` (e.g. differenced messages); None: taken as zero."""
 
     def __post_init__(self) -> None:
         put = object.__setattr__
@@ -130,6 +134,15 @@ class SafetyContext:
             put(self, "target_heading", math.atan2(vq[1], vq[0]) if speed > 0.1 else 0.0)
         elif not math.isfinite(float(self.target_heading)):
             raise ValueError(f"target_heading must be finite, got {self.target_heading}")
+        if self.velocity is not None:
+            put(self, "velocity", _vec3("velocity", self.velocity))
+        if self.neighbour_velocities is not None:
+            nv = _rows3("neighbour_velocities", self.neighbour_velocities)
+            if nv.shape != self.neighbours.shape:
+                raise ValueError(
+                    f"neighbour_velocities {nv.shape} must match neighbours {self.neighbours.shape}"
+                )
+            put(self, "neighbour_velocities", nv)
         if self.neighbour_ids is not None and len(self.neighbour_ids) != len(self.neighbours):
             raise ValueError(
                 f"neighbour_ids has {len(self.neighbour_ids)} entries for "
@@ -147,7 +160,8 @@ class CBFRows(NamedTuple):
     A: np.ndarray
     """(k, 3) row coefficients on V^g (the omega block of (25)/(34)/(45) is zero and dropped)."""
     b: np.ndarray
-    """(k,) right-hand sides, ``gamma * h + drift - margin``."""
+    """(k,) right-hand sides, ``gamma * h + drift - margin`` (first-order rows; see
+    `RowBuilder._second_order` for the rows of a lagged plant)."""
     h: np.ndarray
     """(k,) barrier values."""
     gamma: np.ndarray
@@ -493,7 +507,10 @@ class RowBuilder:
         connectivity_margin: float = 0.0,
         target_as_obstacle: bool = True,
         occlusion: bool = True,
+        lag_tau: float = 0.0,
     ) -> None:
+        if not (math.isfinite(lag_tau) and lag_tau >= 0.0):
+            raise ValueError(f"lag_tau must be a finite time constant >= 0 (s), got {lag_tau}")
         if obstacle_model not in ("box", "point"):
             raise ValueError(f"obstacle_model must be 'box' or 'point', got {obstacle_model!r}")
         if cbf.occlusion_model not in ("paper", "moving-target"):
@@ -505,6 +522,7 @@ class RowBuilder:
         self.margin = float(connectivity_margin)
         self.target_as_obstacle = target_as_obstacle
         self.occlusion = occlusion
+        self.lag_tau = float(lag_tau)
         self._gammas = (
             0.5 * cbf.gamma_s,
             cbf.gamma_obstacle,
@@ -578,7 +596,63 @@ class RowBuilder:
         if fams[5][2] is not None:  # moving-target occlusion rows
             drift[len(h) - sizes[5] :] = fams[5][2]
         b = gamma * h + drift - margin
+        if self.lag_tau > 0.0:
+            b = self._second_order(ctx, A, h, b, margin, kind, index, sizes)
         return CBFRows(A, b, h, gamma, drift, margin, kind, index)
+
+    def _second_order(self, ctx, A, h, b, margin, kind, index, sizes) -> np.ndarray:
+        """Right-hand sides of the collision, floor and connectivity rows as second-order CBFs
+        for a first-order velocity lag ``v-dot = (u - v) / tau`` (not in the paper).
+
+        With the actual velocity v, psi = h-dot + gamma1 h and psi-dot + psi / tau >= 0 give,
+        for the row's own share s (1/2 for the pair rows (23), 1 otherwise) and A = -grad h,
+        ``A u <= -grad h . v + s (tau dv' H dv + (tau gamma1 + 1) grad h . dv + gamma1 h)``,
+        dv the velocity relative to the other body and H the Hessian of h. As tau -> 0 this is
+        the first-order row; rows keep their A, only b changes. Occlusion rows stay first order.
+        """
+        cbf, tau = self.cbf, self.lag_tau
+        v = ctx.velocity
+        if v is None:
+            raise ValueError("second-order rows (lag_tau > 0) need SafetyContext.velocity")
+        nb_v = ctx.neighbour_velocities
+        if nb_v is None:
+            nb_v = np.zeros_like(ctx.neighbours)
+        n = len(h)
+        dv = np.tile(v, (n, 1))
+        curv = np.zeros(n)
+        gamma1 = np.zeros(n)
+        share = np.ones(n)
+        ends = np.cumsum(sizes)
+        uav, obs, tgt, flr, con, _ = (slice(e - k, e) for e, k in zip(ends, sizes, strict=True))
+        for sl, g1 in ((uav, cbf.gamma_s), (con, cbf.gamma_c)):
+            dv[sl] = v - nb_v[index[sl]]
+            sign = 2.0 if sl is uav else -2.0  # H = 2I for (20), -2I for (29)
+            curv[sl] = sign * np.einsum("ij,ij->i", dv[sl], dv[sl])
+            gamma1[sl], share[sl] = g1, 0.5
+        grad = -A
+        if sizes[1]:
+            if self.obstacle_model == "point":
+                curv[obs] = 2.0 * (v @ v)
+            else:  # H = 2 diag(axes outside the slab) outside, -2 n n' inside the box
+                sign = np.where(h[obs] + cbf.obstacle_clearance**2 >= 0.0, 2.0, -2.0)
+                curv[obs] = sign * ((grad[obs] != 0.0) @ (v * v))
+            gamma1[obs] = cbf.gamma_obstacle
+        if sizes[2]:
+            c, s_ = math.cos(ctx.target_heading), math.sin(ctx.target_heading)
+            rot = np.array(((c, s_, 0.0), (-s_, c, 0.0), (0.0, 0.0, 1.0)))  # world -> car frame
+            dv[tgt] = v - ctx.target_velocity
+            g_l, dv_l = rot @ grad[tgt][0], rot @ dv[tgt][0]
+            active = np.abs(g_l) > 1e-12 * max(float(np.abs(g_l).max()), 1e-300)
+            sign = 2.0 if h[tgt][0] + cbf.obstacle_clearance**2 >= 0.0 else -2.0
+            curv[tgt] = sign * float(active @ (dv_l * dv_l))
+            gamma1[tgt] = cbf.gamma_obstacle
+        gamma1[flr] = cbf.gamma_z  # H = 0
+        sel = kind < OCCLUSION
+        hdot = np.einsum("ij,ij->i", grad, dv)
+        second = -(grad @ v) + share * (tau * curv + (tau * gamma1 + 1.0) * hdot + gamma1 * h)
+        out = b.copy()
+        out[sel] = (second - margin)[sel]
+        return out
 
 
 _NONE = (_EMPTY3, np.zeros(0), None, np.zeros(0, int))

@@ -102,6 +102,10 @@ class ShieldOptions:
     """Feasibility tolerance (m/s on unit rows) of the fast path and of active-row detection."""
     verify_tol: float = 1e-6
     """A solver's answer is rejected if it violates its QP's rows by more than this."""
+    lag_tau: float = 0.0
+    """Not in the paper: velocity time constant (s) of a first-order-lag plant; > 0 makes the
+    collision, floor and connectivity rows second-order CBFs on the actual velocity
+    (`SafetyContext.velocity` required). 0: the paper's integrator (3)."""
 
     def __post_init__(self) -> None:
         if self.obstacle_model not in ("box", "point"):
@@ -222,6 +226,7 @@ class SafetyFilter:
             connectivity_margin=self.connectivity_margin,
             target_as_obstacle=self.options.target_as_obstacle,
             occlusion=self.options.occlusion,
+            lag_tau=self.options.lag_tau,
         )
         self._lb3 = np.full(3, -self.v_max)
         self._ub3 = np.full(3, self.v_max)

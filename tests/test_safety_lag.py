@@ -1,0 +1,174 @@
+"""Second-order CBF rows for a velocity-lag plant (``ShieldOptions.lag_tau``; not in the paper).
+
+Each row must equal tau (psi-dot + psi / tau) with psi = h-dot + gamma1 h along the lag dynamics
+v-dot = (u - v) / tau (finite differences), and in closed loop with the env's lag model the
+barriers must stay >= 0 where the first-order rows of the paper let them go negative.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from uavtrack_env.config import CBFConfig, DynamicsConfig
+from uavtrack_env.dynamics import integrate
+from uavtrack_env.geometry import world_to_cam_vec
+from uavtrack_env.safety import SafetyContext, SafetyFilter, build_rows
+from uavtrack_env.safety.cbf import CONNECT, FLOOR, OBSTACLE, TARGET, UAV, h_box
+
+TAU = 0.25
+EPS = 1e-4
+CBF = CBFConfig()
+
+
+def hocbf_rate(h_of_t, gamma1: float) -> float:
+    """tau (psi-dot + psi / tau) at t = 0 with psi = h-dot + gamma1 h (central differences)."""
+    h0, hp, hm = h_of_t(0.0), h_of_t(EPS), h_of_t(-EPS)
+    hdot, hddot = (hp - hm) / (2 * EPS), (hp - 2 * h0 + hm) / EPS**2
+    return TAU * hddot + (TAU * gamma1 + 1.0) * hdot + gamma1 * h0
+
+
+def path(p, v, u):
+    """Position along the lag dynamics from (p, v) under the constant command u (2nd order)."""
+    a = (u - v) / TAU
+    return lambda t: p + v * t + 0.5 * a * t * t
+
+
+def rows_of(ctx, kind):
+    rows = build_rows(ctx, CBF, lag_tau=TAU)
+    sel = np.flatnonzero(rows.kind == kind)
+    assert len(sel) > 0, f"no rows of kind {kind}"
+    return rows, sel
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_pair_rows_sum_to_the_second_order_condition(seed):
+    """UAV-UAV (20) and connectivity (29): the two UAVs' halves add up to the HOCBF condition
+    of the pair (each UAV using only its own command; the split of (23))."""
+    rng = np.random.default_rng(600 + seed)
+    p = [rng.uniform(-2, 2, 3) + [0, 0, 3], None]
+    p[1] = p[0] + rng.normal(size=3) * 2.5
+    v = [rng.uniform(-3, 3, 3) for _ in range(2)]
+    u = [rng.uniform(-5, 5, 3) for _ in range(2)]
+    ctx = [
+        SafetyContext(
+            position=p[i],
+            yaw=0.0,
+            neighbours=[p[1 - i]],
+            velocity=v[i],
+            neighbour_velocities=[v[1 - i]],
+        )
+        for i in range(2)
+    ]
+    traj = [path(p[i], v[i], u[i]) for i in range(2)]
+    for kind, gamma1, h_of in (
+        (UAV, CBF.gamma_s, lambda t: np.sum((traj[0](t) - traj[1](t)) ** 2) - CBF.r_s**2),
+        (CONNECT, CBF.gamma_c, lambda t: CBF.r_c**2 - np.sum((traj[0](t) - traj[1](t)) ** 2)),
+    ):
+        total = 0.0
+        for i in range(2):
+            rows, sel = rows_of(ctx[i], kind)
+            r = sel[0]
+            total += rows.b[r] + rows.margin[r] - rows.A[r] @ u[i]
+        assert total == pytest.approx(hocbf_rate(h_of, gamma1), rel=1e-5, abs=1e-5)
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_static_and_target_rows_equal_the_second_order_condition(seed):
+    """Box obstacles, the floor and the moving car: b - A u = tau (psi-dot + psi / tau)."""
+    rng = np.random.default_rng(700 + seed)
+    p = rng.uniform(-1, 1, 3) + [0, 0, 3]
+    v, u = rng.uniform(-3, 3, 3), rng.uniform(-5, 5, 3)
+    centers = p + rng.uniform(-3, 3, (3, 3))
+    half = rng.uniform(0.3, 1.2, (3, 3))
+    q, vq, heading = p + rng.uniform(-4, 4, 3), rng.uniform(-2, 2, 3), rng.uniform(-3, 3)
+    ctx = SafetyContext(
+        position=p,
+        yaw=0.0,
+        obstacle_centers=centers,
+        obstacle_half_extents=half,
+        target_position=q,
+        target_velocity=vq,
+        target_heading=heading,
+        velocity=v,
+    )
+    me = path(p, v, u)
+    c = CBF.obstacle_clearance
+    car = np.array([2.3, 0.9, 0.75])
+    cases = {
+        OBSTACLE: (CBF.gamma_obstacle, lambda j, t: h_box(me(t), centers[j], half[j], c)[0]),
+        FLOOR: (CBF.gamma_z, lambda j, t: me(t)[2] - CBF.z_min),
+        TARGET: (CBF.gamma_obstacle, lambda j, t: h_box(me(t), q + vq * t, car, c, heading)[0]),
+    }
+    for kind, (gamma1, h_of) in cases.items():
+        rows, sel = rows_of(ctx, kind)
+        for r in sel:
+            j = rows.index[r]
+            expected = hocbf_rate(lambda t, j=j, h_of=h_of: h_of(j, t), gamma1)
+            assert rows.b[r] - rows.A[r] @ u == pytest.approx(expected, rel=1e-5, abs=1e-5)
+
+
+def test_second_order_rows_need_the_velocity():
+    ctx = SafetyContext(position=[0, 0, 3], yaw=0.0)
+    with pytest.raises(ValueError, match="velocity"):
+        build_rows(ctx, CBF, lag_tau=TAU)
+    with pytest.raises(ValueError, match="lag_tau"):
+        SafetyFilter(lag_tau=-1.0)
+    with pytest.raises(ValueError, match="neighbour_velocities"):
+        SafetyContext(position=[0, 0, 3], yaw=0.0, neighbours=[[1, 0, 3]], neighbour_velocities=[])
+
+
+def _closed_loop(lag_tau: float, speed: float, scenario: str) -> float:
+    """Least barrier value over 2,000 steps of the env's lag model under a nominal that drives
+    into the danger: two UAVs head-on ('pair'), a dive ('floor'), a box ram ('box')."""
+    dyn, dt = DynamicsConfig(model="lag"), 1.0 / 80.0
+    shield = SafetyFilter(lag_tau=lag_tau)
+    n = 2 if scenario == "pair" else 1
+    pos = np.array([[0.0, 0.0, 3.0], [8.0, 0.3, 3.0]])[:n]
+    yaw, vel, w = np.zeros(n), np.zeros((n, 3)), np.zeros(n)
+    prev = pos.copy()
+    box_c, box_h = np.array([[6.0, 0.2, 1.0]]), np.array([[1.0, 1.0, 1.0]])
+    worst = np.inf
+    for _ in range(2000):
+        us = []
+        for i in range(n):
+            if scenario == "pair":
+                goal = pos[1 - i]
+                ctx = SafetyContext(
+                    position=pos[i],
+                    yaw=yaw[i],
+                    neighbours=[pos[1 - i]],
+                    velocity=vel[i],
+                    neighbour_velocities=[(pos[1 - i] - prev[1 - i]) / dt],
+                )
+            else:
+                goal = box_c[0] if scenario == "box" else np.array([0.0, 0.0, -5.0])
+                ctx = SafetyContext(
+                    position=pos[i],
+                    yaw=yaw[i],
+                    obstacle_centers=box_c,
+                    obstacle_half_extents=box_h,
+                    velocity=vel[i],
+                )
+            d = (goal - pos[i]) / np.linalg.norm(goal - pos[i])
+            u, _ = shield.certify(np.r_[world_to_cam_vec(speed * d, yaw[i]), 0.0], ctx)
+            us.append(u)
+        prev = pos.copy()
+        pos, yaw, vel, w = integrate(pos, yaw, vel, w, np.array(us), dyn, dt)
+        if scenario == "pair":
+            h = np.sum((pos[0] - pos[1]) ** 2) - CBF.r_s**2
+        elif scenario == "box":
+            h = h_box(pos[0], box_c, box_h, CBF.obstacle_clearance)[0]
+        else:
+            h = pos[0, 2] - CBF.z_min
+        worst = min(worst, float(h))
+    return worst
+
+
+@pytest.mark.parametrize("scenario", ["pair", "box", "floor"])
+def test_second_order_rows_keep_the_lagged_plant_safe(scenario):
+    """With the env's lag (tau = 0.25 s, |a| <= 6 m/s^2) the first-order rows let every barrier
+    go negative; the second-order rows keep it >= 0."""
+    assert _closed_loop(0.0, 5.0, scenario) < -0.05
+    for speed in (1.0, 5.0):
+        assert _closed_loop(TAU, speed, scenario) >= -1e-9
