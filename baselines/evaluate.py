@@ -68,9 +68,11 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     )
     ap.add_argument(
         "--lag-aware-cbf",
-        action="store_true",
+        action=argparse.BooleanOptionalAction,
+        default=True,
         help="not in the paper: with --dynamics lag, certify with second-order CBF rows on the "
-        "actual velocity (ShieldOptions.lag_tau)",
+        "actual velocity (ShieldOptions.lag_tau; default); --no-lag-aware-cbf: the paper's "
+        "first-order rows, exact only for the integrator (3)",
     )
     ap.add_argument("--nmpc-solver", default="sqp", choices=["sqp", "ipopt", "rti"])
     ap.add_argument(

@@ -22,6 +22,7 @@ def test_evaluate_cli_writes_valid_metrics(tmp_path):
     assert m["scenario"] == "A" and m["init"] == 0 and m["seed"] == 0
     assert m["planner"] == "tuned" and m["safety_rows"] == 4  # the CLI's default planner
     assert m["occlusion_model"] == "paper" and m["occlusion_point"] == "axis"
+    assert m["lag_aware_cbf"] is True and m["dynamics"] == "lag"
     assert m["duration_s"] == pytest.approx(1.0)
     assert set(m["uavs"]) == {"uav_0", "uav_1", "uav_2"}
     for r in m["uavs"].values():
@@ -87,7 +88,7 @@ def test_lag_aware_expert_differences_messages_into_neighbour_velocities():
     """With lag_aware and the lag model, the shield gets second-order rows and each UAV's
     estimate of its neighbours' velocities, from consecutive messages, equals their velocity."""
     env = uavtrack_v0.parallel_env(scenario="A", max_cycles=20, dynamics={"model": "lag"})
-    obs, infos = env.reset(seed=2)
+    _, infos = env.reset(seed=2)
     expert = ExpertPolicy.from_env(env, lag_aware=True)
     assert expert.shield.options.lag_tau == env.config.dynamics.tau
     rng = np.random.default_rng(0)
@@ -99,6 +100,6 @@ def test_lag_aware_expert_differences_messages_into_neighbour_velocities():
                 np.testing.assert_allclose(row, infos[name]["own"]["velocity"], atol=1e-9)
             assert np.abs(got).max() > 0.1
         actions = {a: rng.uniform(-1, 1, 4).astype(np.float32) for a in env.agents}
-        obs, _, _, _, infos = env.step(actions)
+        infos = env.step(actions)[4]
     assert ExpertPolicy.from_env(env).shield.options.lag_tau == 0.0  # off by default
     env.close()

@@ -600,7 +600,17 @@ class RowBuilder:
             b = self._second_order(ctx, A, h, b, margin, kind, index, sizes)
         return CBFRows(A, b, h, gamma, drift, margin, kind, index)
 
-    def _second_order(self, ctx, A, h, b, margin, kind, index, sizes) -> np.ndarray:
+    def _second_order(
+        self,
+        ctx: SafetyContext,
+        A: np.ndarray,
+        h: np.ndarray,
+        b: np.ndarray,
+        margin: np.ndarray,
+        kind: np.ndarray,
+        index: np.ndarray,
+        sizes: tuple[int, ...],
+    ) -> np.ndarray:
         """Right-hand sides of the collision, floor and connectivity rows as second-order CBFs
         for a first-order velocity lag ``v-dot = (u - v) / tau`` (not in the paper).
 
