@@ -90,7 +90,6 @@ class ExpertPolicy:
         self.obstacle_half_extents = np.asarray(obstacle_half_extents, float).reshape(-1, 3)
         if qp_solver is not None:
             shield_options["solver"] = qp_solver
-        self.dt = DT
         if lag_aware and env_config.dynamics.model == "lag":
             shield_options["lag_tau"] = env_config.dynamics.tau
         # Certify with the RL shield's margins (R_s + 5 cm, R_c - 5 cm): the env counts d < R_s.
@@ -190,7 +189,7 @@ class ExpertPolicy:
         for k, (name, pos) in enumerate(messages.items()):
             before = st.messages.get(name)
             if before is not None:
-                out[k] = (np.asarray(pos) - before) / self.dt
+                out[k] = (np.asarray(pos) - before) / DT
         st.messages = {name: np.array(pos, float) for name, pos in messages.items()}
         return out
 
