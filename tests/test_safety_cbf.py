@@ -184,26 +184,6 @@ def axis_occl_h(p, center, half, n, theta_star):
     return theta(z) - theta_star - np.arcsin(min(np.hypot(half[0], half[1]) / b, 0.99))
 
 
-@pytest.mark.parametrize("model", ["paper", "moving-target"])
-@pytest.mark.parametrize("seed", range(6))
-def test_axis_occlusion_rows_with_size_margin_match_finite_differences(model, seed):
-    """The default occluder (closest point of the box's axis, cone widened by the box's angular
-    radius): h equals an independent minimisation and its rows its finite-difference rate."""
-    rng = np.random.default_rng(300 + seed)
-    cbf = CBFConfig(occlusion_model=model, occlusion_point="axis", occlusion_size_margin=True)
-    ctx = random_context(rng, occlusion_model=model, moving=True)
-    rows = build_rows(ctx, cbf)
-    p, c, hx = ctx.position, ctx.obstacle_centers, ctx.obstacle_half_extents
-    q, vq, ts = ctx.target_position, ctx.target_velocity, cbf.theta_star
-    if model == "paper":
-        h_of = lambda j, V, t: axis_occl_h(p + t * V, c[j], hx[j], q - p, ts)  # noqa: E731
-    else:
-        h_of = lambda j, V, t: axis_occl_h(  # noqa: E731
-            p + t * V, c[j], hx[j], q + t * vq - (p + t * V), ts
-        )
-    check_family(rows, OCCLUSION, h_of, rng)
-
-
 def edges_occl_h(p, center, half, n, theta_star):
     """Independent h of the 'edges' occluder: the least theta over the box's 12 edges, each
     minimised numerically, minus theta*."""
@@ -219,23 +199,32 @@ def edges_occl_h(p, center, half, n, theta_star):
     return best - theta_star
 
 
+BOX_OCCLUDERS = {
+    # point: (CBFConfig overrides, independent h, seed base, seeds)
+    "axis": ({"occlusion_size_margin": True}, axis_occl_h, 300, 6),
+    "edges": ({}, edges_occl_h, 400, 3),
+}
+
+
 @pytest.mark.parametrize("model", ["paper", "moving-target"])
-@pytest.mark.parametrize("seed", range(3))
-def test_edges_occlusion_rows_match_finite_differences(model, seed):
-    """'edges' occluder: h equals an independent minimisation over the 12 edges and its rows
-    the finite-difference rate."""
-    rng = np.random.default_rng(400 + seed)
-    cbf = CBFConfig(occlusion_model=model, occlusion_point="edges")
+@pytest.mark.parametrize(
+    ("point", "seed"), [(pt, k) for pt, spec in BOX_OCCLUDERS.items() for k in range(spec[3])]
+)
+def test_box_occluder_rows_match_finite_differences(point, seed, model):
+    """The 'axis' occluder (closest point of the box's axis, here with the cone widened by the
+    box's angular radius) and the 'edges' occluder (least angle over the 12 edges): h equals an
+    independent minimisation and its rows the finite-difference rate."""
+    overrides, h_fn, base, _ = BOX_OCCLUDERS[point]
+    rng = np.random.default_rng(base + seed)
+    cbf = CBFConfig(occlusion_model=model, occlusion_point=point, **overrides)
     ctx = random_context(rng, occlusion_model=model, moving=True)
     rows = build_rows(ctx, cbf)
     p, c, hx = ctx.position, ctx.obstacle_centers, ctx.obstacle_half_extents
     q, vq, ts = ctx.target_position, ctx.target_velocity, cbf.theta_star
     if model == "paper":
-        h_of = lambda j, V, t: edges_occl_h(p + t * V, c[j], hx[j], q - p, ts)  # noqa: E731
+        h_of = lambda j, V, t: h_fn(p + t * V, c[j], hx[j], q - p, ts)  # noqa: E731
     else:
-        h_of = lambda j, V, t: edges_occl_h(  # noqa: E731
-            p + t * V, c[j], hx[j], q + t * vq - (p + t * V), ts
-        )
+        h_of = lambda j, V, t: h_fn(p + t * V, c[j], hx[j], q + t * vq - (p + t * V), ts)  # noqa: E731
     check_family(rows, OCCLUSION, h_of, rng)
 
 

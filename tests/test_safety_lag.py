@@ -14,7 +14,15 @@ from uavtrack_env.config import CBFConfig, DynamicsConfig
 from uavtrack_env.dynamics import integrate
 from uavtrack_env.geometry import world_to_cam_vec
 from uavtrack_env.safety import SafetyContext, SafetyFilter, build_rows
-from uavtrack_env.safety.cbf import CONNECT, FLOOR, OBSTACLE, TARGET, UAV, h_box
+from uavtrack_env.safety.cbf import (
+    CONNECT,
+    DEFAULT_CAR_HALF_EXTENTS,
+    FLOOR,
+    OBSTACLE,
+    TARGET,
+    UAV,
+    h_box,
+)
 
 TAU = 0.25
 EPS = 1e-4
@@ -94,7 +102,7 @@ def test_static_and_target_rows_equal_the_second_order_condition(seed):
     )
     me = path(p, v, u)
     c = CBF.obstacle_clearance
-    car = np.array([2.3, 0.9, 0.75])
+    car = np.array(DEFAULT_CAR_HALF_EXTENTS)
     cases = {
         OBSTACLE: (CBF.gamma_obstacle, lambda j, t: h_box(me(t), centers[j], half[j], c)[0]),
         FLOOR: (CBF.gamma_z, lambda j, t: me(t)[2] - CBF.z_min),

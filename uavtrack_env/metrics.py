@@ -100,6 +100,7 @@ class EpisodeRecorder:
                 for a, c in zip(tr.occlusion_angles, tr.occlusion_candidates, strict=True)
                 if np.any(c)
             ]
+            max_blocked = float(np.max(tr.blocked_fraction))
             out[agent] = {
                 "rms_u_px": float(np.sqrt(np.mean(pe[:, 0] ** 2))),
                 "rms_v_px": float(np.sqrt(np.mean(pe[:, 1] ** 2))),
@@ -107,8 +108,8 @@ class EpisodeRecorder:
                 "collision_ok": not any(tr.collision),
                 "connectivity_ok": not any(tr.disconnection),
                 "occlusion_ok": not any(tr.occlusion),
-                "unobstructed_ok": not np.any(np.array(tr.blocked_fraction) > 0.0),
-                "max_blocked_fraction": float(np.max(tr.blocked_fraction)),
+                "unobstructed_ok": max_blocked == 0.0,
+                "max_blocked_fraction": max_blocked,
                 "theta_ok": bool(not theta or min(theta) >= self.theta_star - 1e-9),
                 "min_uav_dist_m": float(np.nanmin(others)) if others.size else math.inf,
                 "max_uav_dist_m": float(np.nanmax(others)) if others.size else 0.0,
