@@ -94,7 +94,7 @@ def test_lag_aware_expert_differences_messages_into_neighbour_velocities():
     rng = np.random.default_rng(0)
     for k in range(6):
         st = expert.agents["uav_0"]
-        got = expert._neighbour_velocities(st, infos["uav_0"]["neighbours"])
+        got = st.neighbour_velocities(infos["uav_0"]["neighbours"])
         if k >= 2:  # the UAVs are moving and the previous messages are known
             for row, name in zip(got, infos["uav_0"]["neighbours"], strict=True):
                 np.testing.assert_allclose(row, infos[name]["own"]["velocity"], atol=1e-9)

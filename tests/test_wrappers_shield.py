@@ -138,6 +138,73 @@ def test_same_policies_unshielded_violate(policy):
         assert free["disconnection"] > 0, free
 
 
+# ------------------------------------------------------------------ the velocity-lag plant
+EXACT_HARD = ("uav", "obstacle", "floor", "connect")
+"""Hard row families whose h the UAV knows exactly (the car's comes from its UKF estimate)."""
+
+
+@functools.cache
+def run_lag_episodes(lag_tau: float | None, a_max: float, episodes: int = 10) -> dict:
+    """Seeker episodes under the 'lag' plant: env violations, and the least barrier value of each
+    exactly known hard family over every certify call (``lag_tau`` None: the shield's default)."""
+    out = {"collision": 0, "disconnection": 0, "min_h": dict.fromkeys(EXACT_HARD, math.inf)}
+    kwargs = {} if lag_tau is None else {"lag_tau": lag_tau}
+    for ep in range(episodes):
+        raw = uavtrack_v0.parallel_env(
+            scenario="random",
+            max_cycles=STEPS,
+            terminate_on_collision="agent",
+            dynamics={"model": "lag", "a_max": a_max},
+        )
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # lag_tau = 0 warns; that is tested apart
+            env = CBFShield(raw, **kwargs)
+        try:
+            _obs, infos = env.reset(seed=100 + ep)
+            rng = np.random.default_rng(ep)
+            modes = _modes(ep, env.possible_agents)
+            while env.agents:
+                _obs, _r, _t, _tr, infos = env.step(collision_seeker(env, infos, rng, modes))
+                for agent, info in infos.items():
+                    out["collision"] += info["violations"]["collision"]
+                    out["disconnection"] += info["violations"]["disconnection"]
+                    for name, h in env.last_reports[agent].h.items():
+                        kind = name.split(":")[0]
+                        if kind in out["min_h"]:
+                            out["min_h"][kind] = min(out["min_h"][kind], h)
+        finally:
+            env.close()
+    return out
+
+
+def test_lag_plant_gets_second_order_rows_by_default(make_env):
+    raw = make_env(False, scenario="A", dynamics={"model": "lag"})
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        shielded = CBFShield(raw)
+    assert shielded.filter.options.lag_tau == raw.config.dynamics.tau
+    with pytest.warns(UserWarning, match="best effort"):
+        CBFShield(raw, lag_tau=0.0)
+    assert CBFShield(make_env(False, scenario="A")).filter.options.lag_tau == 0.0
+
+
+def test_second_order_rows_keep_the_barriers_of_the_lag_plant():
+    """Without the acceleration clip (the plant the rows assume), hostile seekers never drive an
+    exactly known hard barrier below 0 through the second-order rows; the paper's first-order
+    rows let the obstacle and floor barriers go negative in the same episodes."""
+    second = run_lag_episodes(None, a_max=1e6)
+    assert min(second["min_h"].values()) >= -1e-9, second
+    first = run_lag_episodes(0.0, a_max=1e6)
+    assert min(first["min_h"]["obstacle"], first["min_h"]["floor"]) < -0.05, first
+
+
+def test_lag_shield_prevents_collisions_with_the_acceleration_bound():
+    """With the env's |a| <= a_max the rows' model is only approximate (a clipped braking
+    command brakes less): still no collision and no broken link, thanks to the margins."""
+    out = run_lag_episodes(None, a_max=6.0)
+    assert out["collision"] == 0 and out["disconnection"] == 0, out
+
+
 # ---------------------------------------------------------------- unchanged / minimal action
 def test_safe_actions_pass_bit_identical(make_env):
     """Far from everything, small actions are not touched: the whole run equals the bare env."""

@@ -17,7 +17,7 @@ from .control import NMPC, NMPCOptions, NMPCResult
 from .control.viewpoint import ViewpointConfig, ViewpointPlanner
 from .estimation import UKFConfig
 from .geometry import world_to_cam_vec
-from .onboard import OnboardTracker, safety_context
+from .onboard import NeighbourVelocities, OnboardTracker, safety_context
 from .safety import SafetyFilter, ShieldReport
 from .safety.margins import ShieldMargins, shield_cbf
 
@@ -50,8 +50,8 @@ class AgentState:
     last_nmpc: NMPCResult | None = None
     last_report: ShieldReport | None = None
     last_u: np.ndarray = field(default_factory=lambda: np.zeros(4))
-    messages: dict[str, np.ndarray] = field(default_factory=dict)
-    """Neighbour positions received at the previous step (to difference into velocities)."""
+    neighbour_velocities: NeighbourVelocities = field(default_factory=NeighbourVelocities)
+    """Differences the neighbours' messages into velocities (second-order rows only)."""
 
 
 class ExpertPolicy:
@@ -95,6 +95,7 @@ class ExpertPolicy:
         # Certify with the RL shield's margins (R_s + 5 cm, R_c - 5 cm): the env counts d < R_s.
         cbf = shield_cbf(cbf or env_config.cbf, ShieldMargins())
         self.shield = SafetyFilter(cbf, env_config.limits, **shield_options)
+        self.lag_aware = self.shield.options.lag_tau > 0.0
         nmpc_cfg = nmpc or NMPCConfig()
         self.agents: dict[str, AgentState] = {
             a: AgentState(
@@ -135,7 +136,7 @@ class ExpertPolicy:
             st.tracker.reset()
             st.last_nmpc, st.last_report = None, None
             st.last_u = np.zeros(4)
-            st.messages = {}
+            st.neighbour_velocities.reset()
             st.nmpc.reset()
             st.viewpoint.reset()
             st.nmpc.reference[1] = st.viewpoint.x2
@@ -155,7 +156,7 @@ class ExpertPolicy:
         t1 = time.perf_counter()
         plan_rows = rows = None
         if self.use_cbf:  # the CBF rows (47): the QP's, and with safety_rows also the plan's
-            nb_v = self._neighbour_velocities(st, info["neighbours"])
+            nb_v = st.neighbour_velocities(info["neighbours"]) if self.lag_aware else None
             ctx = safety_context(info, est, self.obstacle_centers, self.obstacle_half_extents, nb_v)
             rows = self.shield.rows(ctx)
             if st.nmpc.cfg.safety_rows:
@@ -179,19 +180,6 @@ class ExpertPolicy:
         self.timings["qp"].append(t2 - t1 + t4 - t3)
         st.last_u = np.asarray(u, float)
         return np.clip(st.last_u / self.scale, -1.0, 1.0).astype(np.float32)
-
-    def _neighbour_velocities(self, st: AgentState, messages: dict) -> np.ndarray | None:
-        """Velocities of the neighbours heard now, differenced from their previous messages
-        (zero for a neighbour not heard at the previous step); None unless the rows need them."""
-        if not self.shield.options.lag_tau:
-            return None
-        out = np.zeros((len(messages), 3))
-        for k, (name, pos) in enumerate(messages.items()):
-            before = st.messages.get(name)
-            if before is not None:
-                out[k] = (np.asarray(pos) - before) / DT
-        st.messages = {name: np.array(pos, float) for name, pos in messages.items()}
-        return out
 
     def slacks(self) -> dict[str, float]:
         """The QP slack of each agent's last step (0 without a report)."""

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .config import CameraConfig
+from .config import DT, CameraConfig
 from .estimation import Estimate, Measurement, TargetEstimator, UKFConfig
 from .geometry import world_to_cam_vec
 from .safety import SafetyContext
@@ -42,6 +42,33 @@ class OnboardTracker:
         u_meas = np.concatenate([world_to_cam_vec(own["velocity"], yaw), [-own["yaw_rate"]]])
         self.estimate = self.estimator.step(u_meas, pos, yaw, meas)
         return self.estimate
+
+
+class NeighbourVelocities:
+    """Neighbours' global velocities, differenced from their consecutive position messages.
+
+    A UAV hears only positions (section III); second-order CBF rows (`ShieldOptions.lag_tau`)
+    also need the neighbours' velocities. Call once per step with that step's messages; a
+    neighbour not heard at the previous step counts as still (exact at a reset, where all start
+    at rest). With the env's forward-Euler step the difference is the velocity exactly.
+    """
+
+    def __init__(self, dt: float = DT) -> None:
+        self.dt = dt
+        self._last: dict[str, np.ndarray] = {}
+
+    def reset(self) -> None:
+        self._last = {}
+
+    def __call__(self, messages: dict) -> np.ndarray:
+        """(k, 3) velocities of the k neighbours in ``messages`` (name -> position), in order."""
+        out = np.zeros((len(messages), 3))
+        for k, (name, pos) in enumerate(messages.items()):
+            before = self._last.get(name)
+            if before is not None:
+                out[k] = (np.asarray(pos) - before) / self.dt
+        self._last = {name: np.array(pos, float) for name, pos in messages.items()}
+        return out
 
 
 def safety_context(

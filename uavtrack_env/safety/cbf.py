@@ -626,6 +626,11 @@ class RowBuilder:
             raise ValueError("second-order rows (lag_tau > 0) need SafetyContext.velocity")
         nb_v = ctx.neighbour_velocities
         if nb_v is None:
+            if len(ctx.neighbours):
+                raise ValueError(
+                    "second-order rows (lag_tau > 0) need SafetyContext.neighbour_velocities: "
+                    "each pair row is one UAV's half of a condition on the relative velocity"
+                )
             nb_v = np.zeros_like(ctx.neighbours)
         n = len(h)
         dv = np.tile(v, (n, 1))

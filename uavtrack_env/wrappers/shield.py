@@ -19,9 +19,13 @@ barriers already leave a gap between the UAV's sphere and the surface (``obstacl
 ``surface_gap``.
 
 Guarantees hold for the paper's single-integrator dynamics (eq. 3, ``dynamics.model =
-'integrator'``), with every agent shielded and messages not dropped; with the 'lag' model the
-shield is a best effort (a warning says so). Before a UAV has ever detected the car it has no
-estimate, so no car row (documented limitation).
+'integrator'``), with every agent shielded and messages not dropped. Under the 'lag' model the
+shield certifies with second-order rows (`ShieldOptions.lag_tau` = the env's ``dynamics.tau``
+unless given), each UAV differencing its neighbours' messages into velocities; those rows assume
+the commanded change of velocity is reachable, i.e. ``|u - v| / tau <= a_max`` is not clipped
+(measured in `tests/test_wrappers_shield.py`). ``lag_tau=0`` under the lag model keeps the
+paper's first-order rows, a best effort (a warning says so). Before a UAV has ever detected
+the car it has no estimate, so no car row (documented limitation).
 """
 
 from __future__ import annotations
@@ -37,7 +41,7 @@ from pettingzoo.utils.wrappers import BaseParallelWrapper
 from uavtrack_env.config import CBFConfig
 from uavtrack_env.env import UAVTrackEnv
 from uavtrack_env.estimation import UKFConfig
-from uavtrack_env.onboard import OnboardTracker, safety_context
+from uavtrack_env.onboard import NeighbourVelocities, OnboardTracker, safety_context
 from uavtrack_env.safety import SafetyContext, SafetyFilter, ShieldOptions, ShieldReport
 from uavtrack_env.safety.margins import ShieldMargins, shield_cbf
 from uavtrack_env.target import CAR_HALF_EXTENTS
@@ -99,11 +103,14 @@ class CBFShield(BaseParallelWrapper):
             )
         self.cbf = shield_cbf(base, self.margins)
         options = {k: v for k, v in config.items() if k in _OPTION_NAMES}
+        if env_cfg.dynamics.model == "lag":
+            options.setdefault("lag_tau", env_cfg.dynamics.tau)
         self.filter = SafetyFilter(self.cbf, env_cfg.limits, solver=solver, **options)
-        if env_cfg.dynamics.model != "integrator":
+        lag_tau = self.filter.options.lag_tau
+        if env_cfg.dynamics.model == "lag" and lag_tau != env_cfg.dynamics.tau:
             warnings.warn(
-                "CBFShield's guarantees assume the single-integrator dynamics of eq. (3); with "
-                f"dynamics.model={env_cfg.dynamics.model!r} the shield is a best effort",
+                f"CBFShield certifies with lag_tau = {lag_tau} s but the env's velocity lag is "
+                f"dynamics.tau = {env_cfg.dynamics.tau} s: the shield is a best effort",
                 stacklevel=2,
             )
         if env_cfg.comms.drop_prob > 0 or env_cfg.comms.r_c < self.cbf.r_c:
@@ -117,6 +124,10 @@ class CBFShield(BaseParallelWrapper):
         self._scale = env_cfg.limits.scale
         self._ids = {a: i for i, a in enumerate(raw.possible_agents)}
         self._trackers = {a: OnboardTracker(env_cfg.camera, ukf) for a in raw.possible_agents}
+        self._differencers = (
+            {a: NeighbourVelocities() for a in raw.possible_agents} if lag_tau > 0 else {}
+        )
+        self._neighbour_velocities: dict[str, np.ndarray] = {}
         self._infos: dict[str, dict] = {}
         hx, hy, hz = (float(x) for x in CAR_HALF_EXTENTS)
         self._car_half = np.array([math.hypot(hx, hy), math.hypot(hx, hy), hz])
@@ -150,6 +161,8 @@ class CBFShield(BaseParallelWrapper):
         obs, infos = self.env.reset(seed=seed, options=options)
         for tracker in self._trackers.values():
             tracker.reset()
+        for differencer in self._differencers.values():
+            differencer.reset()
         self.last_reports = {}
         self._observe(infos)
         for info in infos.values():
@@ -200,8 +213,13 @@ class CBFShield(BaseParallelWrapper):
         """The `SafetyContext` of ``agent`` from its latest info and target estimate."""
         info = self._infos[agent]
         est = self._trackers[agent].estimate
+        layout = self._raw.layout
         ctx = safety_context(
-            info, est, self._raw.layout.obstacle_centers, self._raw.layout.obstacle_half_extents
+            info,
+            est,
+            layout.obstacle_centers,
+            layout.obstacle_half_extents,
+            self._neighbour_velocities.get(agent),
         )
         # Fields added to the validated context; set in place (like SafetyContext's own
         # __post_init__) since a dataclasses.replace would re-validate every array (~15 us).
@@ -217,7 +235,10 @@ class CBFShield(BaseParallelWrapper):
         return ctx
 
     def _observe(self, infos: dict[str, dict]) -> None:
-        """Feed every live agent's tracker with its new info and keep the info for certify."""
+        """Feed every live agent's tracker (and, for second-order rows, its neighbours'
+        velocities) with its new info and keep the info for certify."""
         for agent, info in infos.items():
             self._trackers[agent].update(info)
+            if self._differencers:
+                self._neighbour_velocities[agent] = self._differencers[agent](info["neighbours"])
         self._infos = infos
