@@ -101,5 +101,6 @@ def test_lag_aware_expert_differences_messages_into_neighbour_velocities():
             assert np.abs(got).max() > 0.1
         actions = {a: rng.uniform(-1, 1, 4).astype(np.float32) for a in env.agents}
         infos = env.step(actions)[4]
-    assert ExpertPolicy.from_env(env).shield.options.lag_tau == 0.0  # off by default
+    assert ExpertPolicy.from_env(env).shield.options.lag_tau == env.config.dynamics.tau
+    assert ExpertPolicy.from_env(env, lag_aware=False).shield.options.lag_tau == 0.0
     env.close()

@@ -62,8 +62,9 @@ class ExpertPolicy:
     QP (the ``--no-cbf`` ablation); ``viewpoint`` configures the x2* layer that looks over tall
     boxes (not in the paper; `uavtrack_env.control.viewpoint`). ``nmpc`` and ``ukf`` default to
     the paper's planner; ``PLANNERS["tuned"]`` gives baselines.evaluate's default.
-    ``lag_aware=True`` with the env's 'lag' dynamics certifies with second-order rows
-    (`ShieldOptions.lag_tau`), the neighbours' velocities differenced from their messages.
+    With the env's 'lag' dynamics the shield certifies with second-order rows
+    (`ShieldOptions.lag_tau`, the neighbours' velocities differenced from their messages), as
+    `CBFShield` does; ``lag_aware=False`` keeps the paper's first-order rows.
     """
 
     def __init__(
@@ -80,7 +81,7 @@ class ExpertPolicy:
         use_cbf: bool = True,
         viewpoint: ViewpointConfig | None = None,
         qp_solver: str | None = None,
-        lag_aware: bool = False,
+        lag_aware: bool = True,
         **shield_options,
     ) -> None:
         self.config = env_config
