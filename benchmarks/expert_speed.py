@@ -3,9 +3,10 @@
     python benchmarks/expert_speed.py [--steps 800] [--planners tuned paper] [--solvers sqp ipopt]
         [--jit]
 
-Runs the closed loop (lag dynamics, detector noise on) and prints per-UAV medians of the UKF,
-NMPC and CBF-QP, the whole expert step for 3 UAVs, the env step, and the real-time factor at 80 Hz
-of expert alone and of expert + env, for each planner (`expert.PLANNERS`) and NMPC solver.
+Runs the closed loop as `baselines.evaluate` does (lag dynamics, detector noise on, its occlusion
+rows and second-order CBF rows) and prints per-UAV medians of the UKF, NMPC and CBF-QP, the whole
+expert step for 3 UAVs, the env step, and the real-time factor at 80 Hz of expert alone and of
+expert + env, for each planner (`expert.PLANNERS`) and NMPC solver.
 """
 
 from __future__ import annotations
@@ -22,7 +23,12 @@ from uavtrack_env.expert import PLANNERS, ExpertPolicy
 
 
 def run(planner: str, solver: str, steps: int, jit: bool = False) -> dict[str, float]:
-    env = uavtrack_v0.parallel_env(scenario="A", max_cycles=steps, dynamics={"model": "lag"})
+    env = uavtrack_v0.parallel_env(
+        scenario="A",
+        max_cycles=steps,
+        dynamics={"model": "lag"},
+        cbf={"occlusion_model": "moving-target", "occlusion_point": "edges"},  # evaluate's
+    )
     obs, infos = env.reset(seed=0)
     options = NMPCOptions(jit=jit)  # one build per solver, shared by the UAVs
     nmpc, ukf = PLANNERS[planner]

@@ -21,7 +21,7 @@ def test_evaluate_cli_writes_valid_metrics(tmp_path):
     assert {"scenario", "init", "seed", "duration_s", "uavs", "timing_ms"} <= set(m)
     assert m["scenario"] == "A" and m["init"] == 0 and m["seed"] == 0
     assert m["planner"] == "tuned" and m["safety_rows"] == 4  # the CLI's default planner
-    assert m["occlusion_model"] == "paper" and m["occlusion_point"] == "axis"
+    assert m["occlusion_model"] == "moving-target" and m["occlusion_point"] == "edges"
     assert m["lag_aware_cbf"] is True and m["dynamics"] == "lag"
     assert m["duration_s"] == pytest.approx(1.0)
     assert set(m["uavs"]) == {"uav_0", "uav_1", "uav_2"}
@@ -31,7 +31,7 @@ def test_evaluate_cli_writes_valid_metrics(tmp_path):
         assert r["collision_ok"] and r["connectivity_ok"]
         assert r["detected_fraction"] > 0.9
         assert 0.0 <= r["max_blocked_fraction"] <= 1.0
-        assert r["unobstructed_ok"] == (r["max_blocked_fraction"] == 0.0)
+        assert r["occlusion_ok"] == (r["max_blocked_fraction"] == 0.0)
     assert {"ukf", "nmpc", "qp", "env"} <= set(m["timing_ms"])
     assert all(v > 0 for v in m["timing_ms"].values())
     assert (out / "table.md").read_text().count("| A0 |") == 3
@@ -75,11 +75,11 @@ def test_expert_tracks_and_stays_safe_from_a_perturbed_start(planner: str):
 
 def test_evaluate_cli_passes_the_occlusion_options_to_the_env():
     args = evaluate.parse_args(
-        ["--occlusion-model", "moving-target", "--occlusion-point", "edges", "--gamma-o", "0.5"]
+        ["--occlusion-model", "paper", "--occlusion-point", "centre", "--gamma-o", "0.5"]
     )
     env = uavtrack_v0.parallel_env(**evaluate._env_kwargs(args, "A", 0, 10))
     cbf = env.config.cbf
-    assert (cbf.occlusion_model, cbf.occlusion_point) == ("moving-target", "edges")
+    assert (cbf.occlusion_model, cbf.occlusion_point) == ("paper", "centre")
     assert cbf.gamma_o == 0.5
     env.close()
 

@@ -41,10 +41,10 @@ def test_summary_counts_partial_occlusion_and_half_hidden_car_separately():
     s = rec.summary()
     assert s["a"]["rms_u_px"] == pytest.approx(math.sqrt((0 + 9 + 36) / 3))
     assert s["a"]["rms_v_px"] == pytest.approx(4.0)
-    assert s["a"]["unobstructed_ok"] is False  # one of 12 rays blocked: partial occlusion
-    assert s["a"]["occlusion_ok"] is True  # the env's violation: more than half hidden
+    assert s["a"]["occlusion_ok"] is False  # one of 12 rays blocked: partial occlusion
+    assert s["a"]["detection_kept_ok"] is True  # the env's violation: more than half hidden
     assert s["a"]["max_blocked_fraction"] == pytest.approx(1 / 12)
-    assert s["b"]["occlusion_ok"] is False and s["b"]["unobstructed_ok"] is False
+    assert s["b"]["occlusion_ok"] is False and s["b"]["detection_kept_ok"] is False
     assert s["b"]["detected_fraction"] == pytest.approx(2 / 3)
     assert s["a"]["min_uav_dist_m"] == pytest.approx(6.0)
     assert s["a"]["min_occlusion_angle_deg"] == pytest.approx(math.degrees(0.7))
@@ -56,6 +56,6 @@ def test_summary_is_occlusion_free_when_no_ray_is_ever_blocked():
     for _ in range(3):
         rec.record({"a": _info([0, 0, 2], [1.0, 1.0], 0.0, theta=(0.3,), in_noi=(True,))})
     s = rec.summary()["a"]
-    assert s["occlusion_ok"] is True and s["unobstructed_ok"] is True
+    assert s["occlusion_ok"] is True and s["detection_kept_ok"] is True
     assert s["max_blocked_fraction"] == 0.0
     assert s["theta_ok"] is False  # 17 deg < theta* = 30 deg

@@ -17,7 +17,7 @@ from baselines.compare import comparison_table, env_args, make_eval_env, run_pol
 from tests.conftest import METRICS_UAV_KEYS
 from train import ppo
 
-UAV_KEYS = METRICS_UAV_KEYS | {"theta_ok", "steps", "unobstructed_ok", "max_blocked_fraction"}
+UAV_KEYS = METRICS_UAV_KEYS | {"theta_ok", "steps", "detection_kept_ok", "max_blocked_fraction"}
 # 2 copies x 3 UAVs = 6 rows; 64 steps per rollout -> 384 agent-steps per rollout
 SMOKE = [
     "--n-envs", "2", "--n-steps", "64", "--batch-size", "192", "--n-epochs", "1",
