@@ -104,3 +104,25 @@ def test_lag_aware_expert_differences_messages_into_neighbour_velocities():
     assert ExpertPolicy.from_env(env).shield.options.lag_tau == env.config.dynamics.tau
     assert ExpertPolicy.from_env(env, lag_aware=False).shield.options.lag_tau == 0.0
     env.close()
+
+
+@pytest.mark.parametrize(
+    "rows, hidden",
+    [((), False), (("--occlusion-model", "paper", "--occlusion-point", "axis"), True)],
+    ids=["default-rows", "session-8-rows"],
+)
+def test_default_occlusion_rows_keep_the_whole_car_visible_in_b0(tmp_path, rows, hidden):
+    """Closed loop, B0's first 16 s: with evaluate's default rows (edges, moving target) no
+    obstacle hides any of the car's 12 rays from any UAV; with eq. (43) on the boxes' axes a
+    cube hides part of the car from UAV3 from 15.35 s (README, Table VI)."""
+    out = tmp_path / "b0"
+    argv = ["--scenario", "B", "--duration", "16", "--no-figures", "--no-progress"]
+    evaluate.main([*argv, *rows, "--out", str(out)])
+    uavs = json.loads((out / "metrics.json").read_text())["uavs"]
+    blocked = {a: r["max_blocked_fraction"] for a, r in uavs.items()}
+    assert all(r["collision_ok"] and r["connectivity_ok"] for r in uavs.values())
+    if hidden:
+        assert blocked["uav_2"] > 0.0, blocked
+    else:
+        assert max(blocked.values()) == 0.0, blocked
+        assert all(r["occlusion_ok"] for r in uavs.values())
