@@ -275,8 +275,7 @@ def table(runs: list[dict], paper: bool = False) -> str:
             x, y, h = m["initial_conditions"][agent]
             row = (
                 f"| {m['scenario']}{m['init'] if m['scenario'] != 'random' else ''} | {i + 1} "
-                f"| ({x:g}, {y:g}, {h:g}) | {yn[r['max_blocked_fraction'] == 0.0]} "
-                f"| {yn[r['connectivity_ok']]} "
+                f"| ({x:g}, {y:g}, {h:g}) | {yn[r['occlusion_ok']]} | {yn[r['connectivity_ok']]} "
                 f"| {yn[r['collision_ok']]} | {r['rms_u_px']:.2f} | {r['rms_v_px']:.2f} |"
             )
             if paper:

@@ -17,18 +17,15 @@ import statistics
 import time
 from dataclasses import replace
 
+from baselines import evaluate
 from uavtrack_env import uavtrack_v0
 from uavtrack_env.control import NMPCOptions
 from uavtrack_env.expert import PLANNERS, ExpertPolicy
 
 
 def run(planner: str, solver: str, steps: int, jit: bool = False) -> dict[str, float]:
-    env = uavtrack_v0.parallel_env(
-        scenario="A",
-        max_cycles=steps,
-        dynamics={"model": "lag"},
-        cbf={"occlusion_model": "moving-target", "occlusion_point": "edges"},  # evaluate's
-    )
+    env_kwargs = evaluate._env_kwargs(evaluate.parse_args([]), "A", 0, steps)
+    env = uavtrack_v0.parallel_env(**{**env_kwargs, "render_mode": None})
     obs, infos = env.reset(seed=0)
     options = NMPCOptions(jit=jit)  # one build per solver, shared by the UAVs
     nmpc, ukf = PLANNERS[planner]

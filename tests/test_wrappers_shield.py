@@ -91,15 +91,35 @@ def _modes(ep: int, agents: list[str]) -> dict[str, str]:
     return {a: MODES[(ep + i) % 4] for i, a in enumerate(agents)}
 
 
+EXACT_HARD = ("uav", "obstacle", "floor", "connect")
+"""Hard row families whose h the UAV knows exactly (the car's comes from its UKF estimate)."""
+
+
 @functools.cache
-def run_episodes(policy: str, shield: bool) -> dict:
-    """Violation counts over EPISODES seeded random worlds (every step, every agent)."""
+def run_episodes(
+    policy: str,
+    shield: bool,
+    a_max: float | None = None,
+    lag_tau: float | None = None,
+    episodes: int = EPISODES,
+) -> dict:
+    """Violation counts over seeded random worlds (every step, every agent), and with the shield
+    the least barrier value of each `EXACT_HARD` family over every certify call. ``a_max``: run
+    under the 'lag' plant with that acceleration bound (None: the integrator); ``lag_tau``: the
+    shield's (None: its default)."""
     totals = {"collision": 0, "disconnection": 0, "active": 0, "agent_steps": 0, "statuses": {}}
-    for ep in range(EPISODES):
+    totals["min_h"] = dict.fromkeys(EXACT_HARD, math.inf)
+    dynamics = {} if a_max is None else {"dynamics": {"model": "lag", "a_max": a_max}}
+    for ep in range(episodes):
         raw = uavtrack_v0.parallel_env(
-            scenario="random", max_cycles=STEPS, terminate_on_collision="agent"
+            scenario="random", max_cycles=STEPS, terminate_on_collision="agent", **dynamics
         )
-        env = CBFShield(raw) if shield else raw
+        if shield and lag_tau is not None:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")  # lag_tau = 0 warns; that is tested apart
+                env = CBFShield(raw, lag_tau=lag_tau)
+        else:
+            env = CBFShield(raw) if shield else raw
         try:
             _obs, infos = env.reset(seed=100 + ep)
             rng = np.random.default_rng(ep)
@@ -107,7 +127,7 @@ def run_episodes(policy: str, shield: bool) -> dict:
             while env.agents:
                 actions = POLICIES[policy](env, infos, rng, modes)
                 _obs, _rew, _term, _trunc, infos = env.step(actions)
-                for info in infos.values():
+                for agent, info in infos.items():
                     totals["collision"] += info["violations"]["collision"]
                     totals["disconnection"] += info["violations"]["disconnection"]
                     totals["agent_steps"] += 1
@@ -116,6 +136,10 @@ def run_episodes(policy: str, shield: bool) -> dict:
                         totals["active"] += rep["active"]
                         st = totals["statuses"]
                         st[rep["status"]] = st.get(rep["status"], 0) + 1
+                        for name, h in env.last_reports[agent].h.items():
+                            kind = name.split(":")[0]
+                            if kind in EXACT_HARD:
+                                totals["min_h"][kind] = min(totals["min_h"][kind], h)
         finally:
             env.close()
     return totals
@@ -139,44 +163,6 @@ def test_same_policies_unshielded_violate(policy):
 
 
 # ------------------------------------------------------------------ the velocity-lag plant
-EXACT_HARD = ("uav", "obstacle", "floor", "connect")
-"""Hard row families whose h the UAV knows exactly (the car's comes from its UKF estimate)."""
-
-
-@functools.cache
-def run_lag_episodes(lag_tau: float | None, a_max: float, episodes: int = 10) -> dict:
-    """Seeker episodes under the 'lag' plant: env violations, and the least barrier value of each
-    exactly known hard family over every certify call (``lag_tau`` None: the shield's default)."""
-    out = {"collision": 0, "disconnection": 0, "min_h": dict.fromkeys(EXACT_HARD, math.inf)}
-    kwargs = {} if lag_tau is None else {"lag_tau": lag_tau}
-    for ep in range(episodes):
-        raw = uavtrack_v0.parallel_env(
-            scenario="random",
-            max_cycles=STEPS,
-            terminate_on_collision="agent",
-            dynamics={"model": "lag", "a_max": a_max},
-        )
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")  # lag_tau = 0 warns; that is tested apart
-            env = CBFShield(raw, **kwargs)
-        try:
-            _obs, infos = env.reset(seed=100 + ep)
-            rng = np.random.default_rng(ep)
-            modes = _modes(ep, env.possible_agents)
-            while env.agents:
-                _obs, _r, _t, _tr, infos = env.step(collision_seeker(env, infos, rng, modes))
-                for agent, info in infos.items():
-                    out["collision"] += info["violations"]["collision"]
-                    out["disconnection"] += info["violations"]["disconnection"]
-                    for name, h in env.last_reports[agent].h.items():
-                        kind = name.split(":")[0]
-                        if kind in out["min_h"]:
-                            out["min_h"][kind] = min(out["min_h"][kind], h)
-        finally:
-            env.close()
-    return out
-
-
 def test_lag_plant_gets_second_order_rows_by_default(make_env):
     raw = make_env(False, scenario="A", dynamics={"model": "lag"})
     with warnings.catch_warnings():
@@ -192,16 +178,16 @@ def test_second_order_rows_keep_the_barriers_of_the_lag_plant():
     """Without the acceleration clip (the plant the rows assume), hostile seekers never drive an
     exactly known hard barrier below 0 through the second-order rows; the paper's first-order
     rows let the obstacle and floor barriers go negative in the same episodes."""
-    second = run_lag_episodes(None, a_max=1e6)
+    second = run_episodes("seeker", True, a_max=1e6, episodes=10)
     assert min(second["min_h"].values()) >= -1e-9, second
-    first = run_lag_episodes(0.0, a_max=1e6)
+    first = run_episodes("seeker", True, a_max=1e6, lag_tau=0.0, episodes=10)
     assert min(first["min_h"]["obstacle"], first["min_h"]["floor"]) < -0.05, first
 
 
 def test_lag_shield_prevents_collisions_with_the_acceleration_bound():
     """With the env's |a| <= a_max the rows' model is only approximate (a clipped braking
     command brakes less): still no collision and no broken link, thanks to the margins."""
-    out = run_lag_episodes(None, a_max=6.0)
+    out = run_episodes("seeker", True, a_max=6.0, episodes=10)
     assert out["collision"] == 0 and out["disconnection"] == 0, out
 
 
