@@ -5,12 +5,12 @@
 
 Prints and writes DIR/compare.md (one row per policy and world group: RMS pixel errors,
 collisions, disconnection and occluded steps, shield intervention rate), DIR/details.md (per UAV,
-in the form of Table VI) and DIR/metrics.json (every episode in the schema of
-``baselines/evaluate.py`` plus ``violations_per_1000_steps`` and ``shield_intervention_rate``).
-The PPO runs are read from the output directories of ``python -m train.ppo``; a run trained with
-``--shield`` is evaluated shielded. Episodes use evaluate's environment settings (detector noise
-on; ``--dynamics`` defaults to the paper's single integrator, eq. (3), under which the shield's
-guarantees hold).
+in the form of Table VI), DIR/config.json and DIR/metrics.json (every episode in the schema of
+`uavtrack_env.runner.run_episode`). The expert and the shield use ``--preset`` (default 'tuned')
+with ``--set`` overrides. The PPO runs are read from the output directories of ``python -m
+train.ppo``; a run trained with ``--shield`` is evaluated shielded. Episodes use evaluate's world
+(detector noise on; ``--dynamics`` defaults to the paper's single integrator, eq. (3), under
+which the shield's guarantees hold).
 """
 
 from __future__ import annotations
@@ -19,7 +19,6 @@ import argparse
 import json
 import math
 import pickle
-import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -29,12 +28,11 @@ from tqdm import tqdm
 
 from uavtrack_env import uavtrack_v0
 from uavtrack_env.config import DT
-from uavtrack_env.metrics import EpisodeRecorder
+from uavtrack_env.presets import ExpertConfig, add_preset_arguments, expert_config_from
+from uavtrack_env.provenance import cli_command, config_record
+from uavtrack_env.runner import Policy, run_episode
 
 from . import evaluate
-
-VIOLATIONS = ("collision", "disconnection", "occlusion")
-Policy = Callable[[dict, dict], dict]
 
 
 # ------------------------------------------------------------------ policies
@@ -84,94 +82,15 @@ def load_run(run_dir: Path, cloned: bool = False) -> tuple[SB3Policy, dict]:
 
 
 # ------------------------------------------------------------------- episode
-def _shield_flags(infos: dict, policy: Any) -> dict[str, bool] | None:
-    """Whether the shield (wrapper) or the expert's own CBF-QP changed each agent's action."""
-    flags = {a: bool(i["shield"]["active"]) for a, i in infos.items() if "shield" in i}
-    if flags:
-        return flags
-    agents = getattr(policy, "agents", None)
-    if isinstance(agents, dict) and getattr(policy, "use_cbf", False):
-        return {
-            a: bool(st.last_report is not None and st.last_report.active)
-            for a, st in agents.items()
-            if a in infos
-        }
-    return None
-
-
 def run_policy_episode(
-    env: Any,
-    policy: Policy,
-    *,
-    seed: int,
-    steps: int,
-    label: str,
-    dynamics: str,
-    progress: bool = False,
+    env: Any, policy: Policy, *, seed: int, steps: int, label: str, dynamics: str
 ) -> dict:
-    """One episode of ``policy`` on ``env`` (a ParallelEnv, shielded or not) -> metrics dict.
-
-    The dict has the keys of ``baselines/evaluate.py``'s metrics.json (``uavs`` from
-    `EpisodeRecorder`, ``timing_ms``) plus ``violations_per_1000_steps`` (collision,
-    disconnection and occlusion agent-steps per 1000 agent-steps), ``violation_steps`` (the raw
-    counts) and ``shield_intervention_rate`` (fraction of agent-steps whose action the shield, or
-    the expert's CBF-QP, changed; None without either). ``policy.reset()`` is called after the
-    env's reset when it exists.
-    """
-    obs, infos = env.reset(seed=seed)
-    if hasattr(policy, "reset"):
-        policy.reset()
-    raw = env.unwrapped
-    rec = EpisodeRecorder(
-        raw.possible_agents, DT, raw.config.cbf.theta_star, raw.layout.obstacle_centers
-    )
-    rec.record(infos)
-    counts = dict.fromkeys(VIOLATIONS, 0)
-    agent_steps, active, certified = 0, 0, 0
-    env_time, policy_time = [], []
-    slacks = getattr(policy, "slacks", None)
-    for _ in tqdm(range(steps), desc=label, disable=not progress, leave=False):
-        if not env.agents:
-            break
-        t0 = time.perf_counter()
-        actions = policy(obs, infos)
-        t1 = time.perf_counter()
-        obs, _, _, _, infos = env.step(actions)
-        env_time.append(time.perf_counter() - t1)
-        policy_time.append(t1 - t0)
-        rec.record(infos, slacks() if slacks else None)
-        for info in infos.values():
-            agent_steps += 1
-            for k in VIOLATIONS:
-                counts[k] += bool(info["violations"][k])
-        flags = _shield_flags(infos, policy)
-        if flags is not None:
-            certified += len(flags)
-            active += sum(flags.values())
-    n = raw.config.n_uavs
-    per_k = {k: 1000.0 * v / agent_steps if agent_steps else math.nan for k, v in counts.items()}
-    return {
-        "scenario": raw.config.scenario,
-        "init": raw.config.init,
-        "seed": seed,
-        "duration_s": (rec.steps - 1) * DT,
-        "policy": label,
-        "dynamics": dynamics,
-        "cbf": certified > 0 or bool(getattr(policy, "use_cbf", False)),
-        "uavs": rec.summary(),
-        "timing_ms": {
-            "env": 1e3 * float(np.median(env_time)) / n if env_time else math.nan,
-            "policy": 1e3 * float(np.median(policy_time)) / n if policy_time else math.nan,
-        },
-        "initial_conditions": {
-            a: [*map(float, raw.layout.uav_positions[i][:2]), float(raw.layout.uav_yaws[i])]
-            for i, a in enumerate(raw.possible_agents)
-        },
-        "violations_per_1000_steps": per_k,
-        "violation_steps": counts,
-        "agent_steps": agent_steps,
-        "shield_intervention_rate": active / certified if certified else None,
-    }
+    """One episode of ``policy`` on ``env`` (a ParallelEnv, shielded or not) -> metrics dict
+    (`uavtrack_env.runner.run_episode`'s, with the policy's label and the dynamics)."""
+    metrics = run_episode(env, policy, seed=seed, steps=steps, label=label).metrics
+    metrics.update(policy=label, dynamics=dynamics)
+    metrics["cbf"] = metrics["shield_intervention_rate"] is not None
+    return metrics
 
 
 def eval_worlds(
@@ -184,36 +103,23 @@ def eval_worlds(
     return worlds + [("random", 0, first_seed + 1000 + k) for k in range(seeds)]
 
 
-def env_args(dynamics: str = "integrator", noiseless: bool = False) -> argparse.Namespace:
-    """The argument namespace evaluate's helpers read (its defaults; given dynamics/noise).
-
-    The occlusion rows stay the env's defaults (n-dot = 0, the boxes' vertical axes), under
-    which the README's RL comparison was measured, for the expert and the shield alike.
-    """
-    args = evaluate.parse_args(
-        ["--dynamics", dynamics, "--no-figures", "--no-progress"]
-        + ["--occlusion-model", "paper", "--occlusion-point", "axis"]
-    )
-    args.no_noise = noiseless
-    return args
-
-
 def make_eval_env(
-    scenario: str, init: int, steps: int, args: argparse.Namespace, shield: bool, **env_kw
+    scenario: str,
+    init: int,
+    steps: int,
+    *,
+    dynamics: str,
+    shield: ExpertConfig | None,
+    noise: bool = True,
 ) -> Any:
-    """evaluate's environment for one world, wrapped in `CBFShield` when ``shield``."""
-    kw = evaluate._env_kwargs(args, scenario, init, steps)
-    kw["render_mode"] = None
-    kw.update(env_kw)
+    """evaluate's world (no rendering) for one scenario, wrapped in `CBFShield` configured by
+    ``shield`` unless it is None."""
+    kw = evaluate.world_kwargs(scenario, init, steps, dynamics=dynamics, noise=noise, render=False)
     env = uavtrack_v0.parallel_env(**kw)
-    if shield:
-        import warnings
-
+    if shield is not None:
         from uavtrack_env.wrappers import CBFShield
 
-        with warnings.catch_warnings():  # best-effort warning under 'lag' dynamics
-            warnings.simplefilter("ignore")
-            env = CBFShield(env)
+        env = CBFShield(env, shield)
     return env
 
 
@@ -289,13 +195,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     ap.add_argument("--duration", type=float, default=60.0, help="episode length in s")
     ap.add_argument("--dynamics", default="integrator", choices=["integrator", "lag"])
     ap.add_argument("--no-expert", action="store_true", help="skip the expert (slowest)")
-    ap.add_argument(
-        "--planner",
-        default="paper",
-        choices=["paper", "tuned"],
-        help="the expert's NMPC: 'paper' (the expert train.bc clones; the README's comparisons) "
-        "or 'tuned' (baselines.evaluate's default)",
-    )
+    add_preset_arguments(ap)
     ap.add_argument("--out", type=Path, default=Path("runs/compare"))
     ap.add_argument("--no-progress", action="store_true", help="hide the progress bars")
     args = ap.parse_args(argv)
@@ -323,12 +223,34 @@ def main(argv: list[str] | None = None) -> list[dict]:
     args = parse_args(argv)
     if args.merge:
         return merge(args.merge, args.out)
-    eargs = env_args(args.dynamics)
+    expert = expert_config_from(args.preset, args.set)
     steps = max(1, round(args.duration / DT))
+    entrants = _entrants(args, expert)
+    runs = _run_entrants(args, entrants, expert, steps)
+    md = comparison_table(runs)
+    args.out.mkdir(parents=True, exist_ok=True)
+    header = _header(args)
+    command = cli_command("baselines.compare", argv)
+    record = config_record(args.preset, None, expert, command, dynamics=args.dynamics)
+    for m in runs:
+        m["preset"], m["config"] = args.preset, record
+    (args.out / "config.json").write_text(json.dumps(record, indent=2))
+    (args.out / "compare.md").write_text(header + "\n" + md + "\n")
+    (args.out / "details.md").write_text(evaluate.table(runs) + "\n")
+    (args.out / "metrics.json").write_text(json.dumps(runs, indent=2))
+    print(header)
+    print(md)
+    print(f"\nwrote {args.out}/ (compare.md, details.md, metrics.json)")
+    return runs
+
+
+def _entrants(
+    args: argparse.Namespace, expert: ExpertConfig
+) -> list[tuple[str, bool, Callable[[Any], Policy]]]:
+    """(label, shielded, policy factory) of the expert and the given runs; SystemExit if none."""
     entrants: list[tuple[str, bool, Callable[[Any], Policy]]] = []
     if not args.no_expert:
-        eargs.policy, eargs.planner = "expert", args.planner
-        entrants.append(("expert", False, lambda env: evaluate._make_policy(eargs, env)))
+        entrants.append(("expert", False, lambda env: evaluate.make_policy("expert", env, expert)))
     for run_dir, label in ((args.ppo, "PPO"), (args.ppo_shield, "PPO + shield")):
         if run_dir is not None:
             policy, run_args = load_run(run_dir)
@@ -341,13 +263,25 @@ def main(argv: list[str] | None = None) -> list[dict]:
         raise SystemExit(
             "nothing to compare: give --ppo, --ppo-shield or --cloned (or drop --no-expert)"
         )
+    return entrants
+
+
+def _run_entrants(
+    args: argparse.Namespace,
+    entrants: list[tuple[str, bool, Callable[[Any], Policy]]],
+    expert: ExpertConfig,
+    steps: int,
+) -> list[dict]:
+    """One episode per entrant and evaluation world; a shielded entrant gets the expert's
+    CBF-QP."""
     worlds = eval_worlds(args.scenarios, args.seeds)
     runs = []
     bar = tqdm(total=len(worlds) * len(entrants), desc="compare", disable=args.no_progress)
     for label, shielded, make_policy in entrants:
         for scenario, init, seed in worlds:
-            env = make_eval_env(scenario, init, steps, eargs, shielded)
-            env.reset(seed=seed)  # the expert is built from a reset env (its obstacle map)
+            env = make_eval_env(
+                scenario, init, steps, dynamics=args.dynamics, shield=expert if shielded else None
+            )
             policy = make_policy(env)
             runs.append(
                 run_policy_episode(
@@ -357,8 +291,11 @@ def main(argv: list[str] | None = None) -> list[dict]:
             env.close()
             bar.update()
     bar.close()
-    md = comparison_table(runs)
-    args.out.mkdir(parents=True, exist_ok=True)
+    return runs
+
+
+def _header(args: argparse.Namespace) -> str:
+    """compare.md's first lines: the episodes, and each learned entrant's training budget."""
     budget = []
     for run_dir, label in ((args.ppo, "PPO"), (args.ppo_shield, "PPO + shield")):
         if run_dir is not None:
@@ -370,17 +307,10 @@ def main(argv: list[str] | None = None) -> list[dict]:
             f"cloned: {info.get('bc_samples', '?'):.0f} expert agent-steps "
             f"({info.get('bc_episodes')} episodes), no PPO step ({args.cloned})"
         )
-    header = (
+    return (
         f"Episodes of {args.duration:g} s, dynamics {args.dynamics}; random worlds: "
         f"{args.seeds} seeds.\n" + "".join(f"- {b}\n" for b in budget)
     )
-    (args.out / "compare.md").write_text(header + "\n" + md + "\n")
-    (args.out / "details.md").write_text(evaluate.table(runs) + "\n")
-    (args.out / "metrics.json").write_text(json.dumps(runs, indent=2))
-    print(header)
-    print(md)
-    print(f"\nwrote {args.out}/ (compare.md, details.md, metrics.json)")
-    return runs
 
 
 if __name__ == "__main__":

@@ -4,12 +4,14 @@
     python -m baselines.evaluate --all --out runs/table6                    # all six rows
     python -m baselines.evaluate --scenario random --seed 3 --out runs/r3   # a random world
     python -m baselines.evaluate --scenario A --no-cbf --out runs/A0-nocbf  # ablation
+    python -m baselines.evaluate --all --preset paper --out runs/paper      # the paper's equations
+    python -m baselines.evaluate --scenario A --set cbf.gamma_o=0.5         # Fig. 20
 
-Writes DIR/metrics.json, DIR/table.md, DIR/frame.png and the figures of Figs. 12-20.
-Defaults: 60 s at 80 Hz, velocity-lag dynamics, detector noise on (the paper's figures come
-from a simulated quadrotor and a real detector), the tuned planner (``--planner paper`` runs the
-paper's NMPC exactly), second-order CBF rows for the lag, and occlusion rows on the boxes' edges
-with the target's velocity (``--occlusion-model paper --occlusion-point centre``: eqs. (38)-(45)).
+Writes DIR/config.json (the resolved env and expert settings, preset, command, commit,
+versions), DIR/metrics.json, DIR/table.md, DIR/frame.png and the figures of Figs. 12-20.
+The world: 60 s at 80 Hz, velocity-lag dynamics and detector noise on (the paper's figures come
+from a simulated quadrotor and a real detector). The expert: ``--preset`` (default 'tuned';
+`uavtrack_env.presets`) with ``--set`` overrides.
 """
 
 from __future__ import annotations
@@ -17,16 +19,23 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import time
 from pathlib import Path
+from typing import Any
 
-import numpy as np
 from tqdm import tqdm
 
 from uavtrack_env import uavtrack_v0
-from uavtrack_env.config import DT
-from uavtrack_env.metrics import EpisodeRecorder
+from uavtrack_env.config import DT, DetectorConfig
+from uavtrack_env.expert import ExpertPolicy
 from uavtrack_env.policies import HoverPolicy, RandomPolicy, VisualServoPolicy
+from uavtrack_env.presets import (
+    ExpertConfig,
+    add_preset_arguments,
+    expert_config,
+    expert_config_from,
+)
+from uavtrack_env.provenance import cli_command, config_record
+from uavtrack_env.runner import Policy, run_episode
 
 from .paper_results import TABLE_VI
 
@@ -47,204 +56,117 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     ap.add_argument("--policy", default="expert", choices=POLICIES)
     ap.add_argument("--dynamics", default="lag", choices=["integrator", "lag"])
     ap.add_argument("--no-noise", action="store_true", help="noiseless detector")
-    ap.add_argument("--no-cbf", action="store_true", help="expert without the CBF-QP")
-    ap.add_argument(
-        "--no-viewpoint",
-        action="store_true",
-        help="keep the paper's constant x2* (no climbing ahead of tall boxes)",
-    )
-    ap.add_argument("--gamma-o", type=float, default=None, help="occlusion CBF rate (Fig. 20: 0.5)")
-    ap.add_argument(
-        "--occlusion-model",
-        default="moving-target",
-        choices=["paper", "moving-target"],
-        help="occlusion rows: n-dot = 0 as in eq. (43) ('paper') or with the target's estimated "
-        "velocity ('moving-target', default; not in the paper)",
-    )
-    ap.add_argument(
-        "--occlusion-point",
-        default="edges",
-        choices=["centre", "axis", "edges"],
-        help="occluder point p_o of (38): box centre (paper), least-angle point of its vertical "
-        "axis, or of its 12 edges (default; not in the paper)",
-    )
-    ap.add_argument(
-        "--lag-aware-cbf",
-        action=argparse.BooleanOptionalAction,
-        default=True,
-        help="not in the paper: with --dynamics lag, certify with second-order CBF rows on the "
-        "actual velocity (ShieldOptions.lag_tau; default); --no-lag-aware-cbf: the paper's "
-        "first-order rows, exact only for the integrator (3)",
-    )
-    ap.add_argument("--nmpc-solver", default="sqp", choices=["sqp", "ipopt", "rti"])
-    ap.add_argument(
-        "--planner",
-        default="tuned",
-        choices=["paper", "tuned"],
-        help="'tuned' (default; not in the paper): LQR terminal weight, the target's turn rate "
-        "in u_d and the shield's CBF rows on the plan (docs/conventions.md); 'paper': the "
-        "paper's NMPC (18)-(19) exactly",
-    )
-    ap.add_argument(
-        "--terminal-weight",
-        default=None,
-        choices=["w_s", "lqr"],
-        help="NMPC terminal weight W_s: diag(w_s) (Q_s's diagonal) or the LQR cost-to-go",
-    )
-    ap.add_argument(
-        "--yaw-rate-reference",
-        default=None,
-        choices=["zero", "target-turn"],
-        help="yaw rate of the NMPC's u_d (19): 0 (paper) or the target's estimated turn rate",
-    )
-    ap.add_argument(
-        "--safety-rows",
-        type=int,
-        default=None,
-        metavar="K",
-        help="not in the paper: the NMPC plan respects the shield's K nearest-active CBF rows",
-    )
-    ap.add_argument(
-        "--safety-row-stages",
-        type=int,
-        default=None,
-        metavar="N",
-        help="with --safety-rows: only plan stages 0..N-1 respect them (default: all)",
-    )
+    add_preset_arguments(ap)
+    ap.add_argument("--no-cbf", action="store_true", help="expert without the CBF-QP (use_cbf)")
     ap.add_argument(
         "--jit",
         action="store_true",
-        help="JIT-compile the NMPC with gcc (~1.7x faster solves; the first build on a machine "
-        "takes 30-80 s, later ones reuse the cached objects)",
+        help="JIT-compile the NMPC with gcc (nmpc.jit; ~1.7x faster solves; the first "
+        "build on a machine takes 30-80 s, later ones reuse the cached objects)",
     )
     ap.add_argument("--out", type=Path, default=Path("runs/latest"))
     ap.add_argument("--no-figures", action="store_true")
-    ap.add_argument("--no-progress", action="store_true", help="hide the progress bar")
-    return ap.parse_args(argv)
+    ap.add_argument("--no-progress", action="store_true", help="hide the progress bars")
+    args = ap.parse_args(argv)
+    if not (math.isfinite(args.duration) and args.duration > 0):
+        ap.error(f"--duration must be a positive number of seconds, got {args.duration}")
+    return args
 
 
-def _env_kwargs(args: argparse.Namespace, scenario: str, init: int, steps: int) -> dict:
-    cbf = {}
-    if args.gamma_o is not None:
-        cbf["gamma_o"] = args.gamma_o
-    cbf["occlusion_model"] = args.occlusion_model
-    cbf["occlusion_point"] = args.occlusion_point
-    kw = {
+def world_kwargs(
+    scenario: str,
+    init: int,
+    steps: int,
+    *,
+    dynamics: str = "lag",
+    noise: bool = True,
+    render: bool = True,
+) -> dict[str, Any]:
+    """The env keyword arguments of an evaluation world (EnvConfig fields)."""
+    kw: dict[str, Any] = {
         "scenario": scenario,
         "init": init,
         "max_cycles": steps,
-        "render_mode": "rgb_array",
-        "dynamics": {"model": args.dynamics},
-        "cbf": cbf,
+        "render_mode": "rgb_array" if render else None,
+        "dynamics": {"model": dynamics},
     }
-    if args.no_noise:
-        from uavtrack_env.config import DetectorConfig
-
+    if not noise:
         kw["detector"] = DetectorConfig.noiseless()
     return kw
 
 
-def planner_config(args: argparse.Namespace):
-    """(NMPCConfig, UKFConfig) of the expert: the --planner preset, then the explicit flags."""
-    from dataclasses import replace
-
-    from uavtrack_env.expert import PLANNERS
-
-    nmpc, ukf = PLANNERS[args.planner]
-    flags = {
-        "terminal_weight": args.terminal_weight,
-        "yaw_rate_reference": args.yaw_rate_reference,
-        "safety_rows": args.safety_rows,
-        "safety_row_stages": args.safety_row_stages,
-    }
-    nmpc = replace(
-        nmpc, solver=args.nmpc_solver, **{k: v for k, v in flags.items() if v is not None}
-    )
-    return nmpc, ukf
+def expert_settings(preset: str, assignments: list[str], no_cbf: bool, jit: bool) -> ExpertConfig:
+    """The CLI's expert: the preset, ``--set`` overrides, then ``--no-cbf`` and ``--jit``."""
+    cfg = expert_config_from(preset, assignments)
+    extra: dict[str, Any] = {}
+    if no_cbf:
+        extra["use_cbf"] = False
+    if jit:
+        extra["nmpc"] = {"jit": True}
+    return expert_config(cfg, **extra)
 
 
-def _make_policy(args: argparse.Namespace, env):
-    if args.policy == "expert":
-        from uavtrack_env.control import NMPCOptions
-        from uavtrack_env.control.viewpoint import ViewpointConfig
-        from uavtrack_env.expert import ExpertPolicy
-
-        nmpc, ukf = planner_config(args)
-        return ExpertPolicy.from_env(
-            env,
-            use_cbf=not args.no_cbf,
-            nmpc=nmpc,
-            ukf=ukf,
-            nmpc_options=NMPCOptions(jit=True) if args.jit else None,
-            viewpoint=ViewpointConfig(enabled=not args.no_viewpoint),
-            lag_aware=args.lag_aware_cbf,
-        )
-    base = {"servo": VisualServoPolicy, "hover": HoverPolicy, "random": RandomPolicy}[args.policy]()
+def make_policy(name: str, env: Any, expert: ExpertConfig) -> Policy:
+    """The policy ``name`` (one of `POLICIES`) for ``env``'s agents."""
+    if name == "expert":
+        return ExpertPolicy(env.possible_agents, env.unwrapped.config, expert)
+    base = {"servo": VisualServoPolicy, "hover": HoverPolicy, "random": RandomPolicy}[name]()
     return lambda obs, infos: {a: base(a, obs[a]) for a in obs}
 
 
-def run_episode(args: argparse.Namespace, scenario: str, init: int, out: Path) -> dict:
-    """One episode; writes metrics.json, table.md, frame.png and figures into ``out``."""
-    steps = max(1, round(args.duration / DT))
-    env = uavtrack_v0.parallel_env(**_env_kwargs(args, scenario, init, steps))
-    obs, infos = env.reset(seed=args.seed)
-    policy = _make_policy(args, env)
-    rec = EpisodeRecorder(
-        env.possible_agents, DT, env.config.cbf.theta_star, env.layout.obstacle_centers
+def evaluate_world(
+    scenario: str,
+    init: int,
+    out: Path,
+    *,
+    seed: int = 0,
+    duration: float = 60.0,
+    dynamics: str = "lag",
+    noise: bool = True,
+    policy: str = "expert",
+    expert: ExpertConfig | None = None,
+    preset: str | None = None,
+    figures: bool = True,
+    progress: bool = False,
+    command: str | None = None,
+) -> dict:
+    """One episode; writes config.json, metrics.json, table.md, frame.png and figures to ``out``."""
+    expert = expert or expert_config(preset)
+    steps = max(1, round(duration / DT))
+    env = uavtrack_v0.parallel_env(
+        **world_kwargs(scenario, init, steps, dynamics=dynamics, noise=noise, render=figures)
     )
-    rec.record(infos)
-    env_time = []
-    slacks = getattr(policy, "slacks", None)
-    for _ in tqdm(range(steps), desc=f"{scenario}{init}", disable=args.no_progress, leave=False):
-        if not env.agents:
-            break
-        actions = policy(obs, infos)
-        t0 = time.perf_counter()
-        obs, _, _, _, infos = env.step(actions)
-        env_time.append(time.perf_counter() - t0)
-        rec.record(infos, slacks() if slacks else None)
-    n = env.config.n_uavs
-    timing = {"env": 1e3 * float(np.median(env_time)) / n if env_time else math.nan}
-    for stage in ("ukf", "nmpc", "qp"):
-        times = getattr(policy, "timings", {}).get(stage, [])
-        timing[stage] = 1e3 * float(np.median(times)) if times else math.nan
-    nmpc_cfg = planner_config(args)[0]
-    metrics = {
-        "scenario": scenario,
-        "init": init,
-        "seed": args.seed,
-        "duration_s": (rec.steps - 1) * DT,
-        "policy": args.policy,
-        "dynamics": args.dynamics,
-        "cbf": not args.no_cbf,
-        "viewpoint": not args.no_viewpoint,
-        "planner": args.planner,
-        "occlusion_model": env.config.cbf.occlusion_model,
-        "occlusion_point": env.config.cbf.occlusion_point,
-        "lag_aware_cbf": args.lag_aware_cbf,
-        **{
-            k: getattr(nmpc_cfg, k)
-            for k in ("terminal_weight", "yaw_rate_reference", "safety_rows", "safety_row_stages")
-        },
-        "uavs": rec.summary(),
-        "timing_ms": timing,
-        "initial_conditions": {
-            a: [*map(float, env.layout.uav_positions[i][:2]), float(env.layout.uav_yaws[i])]
-            for i, a in enumerate(env.possible_agents)
-        },
-    }
+    agent = make_policy(policy, env, expert)
+    label = f"{scenario}{init}" if scenario != "random" else f"seed {seed}"
+    result = run_episode(
+        env,
+        agent,
+        seed=seed,
+        steps=steps,
+        theta_star=expert.cbf.theta_star,
+        label=label,
+        progress=progress,
+    )
+    record = config_record(preset, env.config, expert, command, policy=policy)
+    metrics = {**result.metrics, "policy": policy, "preset": preset, "config": record}
     out.mkdir(parents=True, exist_ok=True)
+    (out / "config.json").write_text(json.dumps(record, indent=2))
     (out / "metrics.json").write_text(json.dumps(metrics, indent=2))
     (out / "table.md").write_text(table([metrics]) + "\n")
-    if not args.no_figures:
+    if figures:
         import matplotlib.pyplot as plt
 
         from uavtrack_env.plotting import all_figures
 
         plt.imsave(out / "frame.png", env.render())
-        suffix = f"_gamma_o_{args.gamma_o:g}" if args.gamma_o is not None else ""
+        cbf = expert.cbf.resolve(env.config.violations.r_s, env.config.comms.r_c)
         all_figures(
-            rec, env.config, env.layout.references, env.layout.obstacle_half_extents, out, suffix
+            result.recorder,
+            env.config,
+            cbf,
+            env.layout.references,
+            env.layout.obstacle_half_extents,
+            out,
         )
     env.close()
     return metrics
@@ -289,24 +211,38 @@ def table(runs: list[dict], paper: bool = False) -> str:
 
 def main(argv: list[str] | None = None) -> None:
     args = parse_args(argv)
+    expert = expert_settings(args.preset, args.set, args.no_cbf, args.jit)
+    common = {
+        "seed": args.seed,
+        "duration": args.duration,
+        "dynamics": args.dynamics,
+        "noise": not args.no_noise,
+        "policy": args.policy,
+        "expert": expert,
+        "preset": args.preset,
+        "figures": not args.no_figures,
+        "progress": not args.no_progress,
+        "command": cli_command("baselines.evaluate", argv),
+    }
     if args.all:
         rows = [(s, i) for s in ("A", "B", "C") for i in (0, 1)]
         runs = [
-            run_episode(args, s, i, args.out / f"{s}{i}")
+            evaluate_world(s, i, args.out / f"{s}{i}", **common)
             for s, i in tqdm(rows, desc="Table VI", disable=args.no_progress)
         ]
         md = table(runs, paper=True)
         (args.out / "table.md").write_text(md + "\n")
         (args.out / "metrics.json").write_text(json.dumps(runs, indent=2))
+        (args.out / "config.json").write_text(json.dumps(runs[0]["config"], indent=2))
     else:
-        m = run_episode(args, args.scenario, args.init, args.out)
+        m = evaluate_world(args.scenario, args.init, args.out, **common)
         md = table([m], paper=args.scenario != "random")
         print(
-            "timing (ms, median per UAV-step): "
+            f"real time x{m['real_time_factor']:.2f}; timing (ms, median per UAV-step): "
             + ", ".join(f"{k} {v:.3f}" for k, v in m["timing_ms"].items())
         )
     print(md)
-    print(f"\nwrote {args.out}/ (metrics.json, table.md, figures)")
+    print(f"\nwrote {args.out}/ (config.json, metrics.json, table.md, figures)")
 
 
 if __name__ == "__main__":

@@ -16,11 +16,12 @@ import time
 import numpy as np
 
 from uavtrack_env import uavtrack_v0
+from uavtrack_env.config import MAX_EPISODE_STEPS
 
 
 def steps_per_second(n: int, steps: int, seed: int) -> float:
     env = uavtrack_v0.parallel_env(
-        scenario="random", n_uavs=n, max_cycles=10**9, terminate_on_collision="agent"
+        scenario="random", n_uavs=n, max_cycles=MAX_EPISODE_STEPS, terminate_on_collision="agent"
     )
     rng = np.random.default_rng(seed)
     env.reset(seed=seed)

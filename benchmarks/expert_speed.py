@@ -1,12 +1,12 @@
 """Median time of each expert stage and of the whole 3-UAV expert step, scenario A.
 
-    python benchmarks/expert_speed.py [--steps 800] [--planners tuned paper] [--solvers sqp ipopt]
+    python benchmarks/expert_speed.py [--steps 800] [--presets tuned paper] [--solvers sqp ipopt]
         [--jit]
 
-Runs the closed loop as `baselines.evaluate` does (lag dynamics, detector noise on, its occlusion
-rows and second-order CBF rows) and prints per-UAV medians of the UKF, NMPC and CBF-QP, the whole
-expert step for 3 UAVs, the env step, and the real-time factor at 80 Hz of expert alone and of
-expert + env, for each planner (`expert.PLANNERS`) and NMPC solver.
+Runs the closed loop in `baselines.evaluate`'s world (lag dynamics, detector noise on) and prints
+per-UAV medians of the UKF, NMPC and CBF-QP, the whole expert step for 3 UAVs, the env step, and
+the real-time factor at 80 Hz of expert alone and of expert + env, for each preset
+(`uavtrack_env.presets.PRESETS`) and NMPC solver.
 """
 
 from __future__ import annotations
@@ -15,23 +15,18 @@ import argparse
 import platform
 import statistics
 import time
-from dataclasses import replace
 
 from baselines import evaluate
 from uavtrack_env import uavtrack_v0
-from uavtrack_env.control import NMPCOptions
-from uavtrack_env.expert import PLANNERS, ExpertPolicy
+from uavtrack_env.expert import ExpertPolicy
+from uavtrack_env.presets import PRESETS, expert_config
 
 
-def run(planner: str, solver: str, steps: int, jit: bool = False) -> dict[str, float]:
-    env_kwargs = evaluate._env_kwargs(evaluate.parse_args([]), "A", 0, steps)
-    env = uavtrack_v0.parallel_env(**{**env_kwargs, "render_mode": None})
+def run(preset: str, solver: str, steps: int, jit: bool = False) -> dict[str, float]:
+    env = uavtrack_v0.parallel_env(**evaluate.world_kwargs("A", 0, steps, render=False))
     obs, infos = env.reset(seed=0)
-    options = NMPCOptions(jit=jit)  # one build per solver, shared by the UAVs
-    nmpc, ukf = PLANNERS[planner]
-    expert = ExpertPolicy.from_env(
-        env, nmpc=replace(nmpc, solver=solver), ukf=ukf, nmpc_options=options
-    )
+    config = expert_config(preset, nmpc={"solver": solver, "jit": jit})
+    expert = ExpertPolicy.from_env(env, config)
     whole, env_t = [], []
     while env.agents:
         t0 = time.perf_counter()
@@ -50,7 +45,7 @@ def run(planner: str, solver: str, steps: int, jit: bool = False) -> dict[str, f
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--steps", type=int, default=800)
-    ap.add_argument("--planners", nargs="+", default=["tuned", "paper"], choices=list(PLANNERS))
+    ap.add_argument("--presets", nargs="+", default=["tuned", "paper"], choices=list(PRESETS))
     ap.add_argument("--solvers", nargs="+", default=["sqp", "ipopt"])
     ap.add_argument(
         "--jit", action="store_true", help="also each solver with the NLP JIT-compiled (needs gcc)"
@@ -59,14 +54,14 @@ def main() -> None:
     print(f"machine: {platform.machine()}, python {platform.python_version()}, {args.steps} steps")
     period = 1e3 / 80.0
     rows = {}
-    for p in args.planners:
+    for p in args.presets:
         for s in args.solvers:
             rows[f"{p}/{s}"] = run(p, s, args.steps)
             if args.jit:
                 rows[f"{p}/{s}+jit"] = run(p, s, args.steps, jit=True)
     cols = ["ukf", "nmpc", "qp", "expert_step_3uav", "env_step"]
     print(
-        f"{'planner/solver':>16} " + " ".join(f"{c:>17}" for c in cols) + f" {'RT x (expert)':>14}"
+        f"{'preset/solver':>16} " + " ".join(f"{c:>17}" for c in cols) + f" {'RT x (expert)':>14}"
         f" {'RT x (+env)':>12}"
     )
     for s, m in rows.items():
@@ -76,7 +71,7 @@ def main() -> None:
             f"{s:>16} " + " ".join(f"{m[c]:>14.3f} ms" for c in cols) + f" {rt:>14.2f}"
             f" {rt_env:>12.2f}"
         )
-    for p in args.planners:
+    for p in args.presets:
         ipopt = rows.get(f"{p}/ipopt")
         if ipopt is None:
             continue

@@ -13,9 +13,10 @@ import time
 
 import numpy as np
 
-from uavtrack_env.config import DT, NMPCConfig
-from uavtrack_env.control import NMPC, NMPCOptions
+from uavtrack_env.config import DT
+from uavtrack_env.control import NMPC
 from uavtrack_env.control import nmpc as nmpc_module
+from uavtrack_env.control.config import NMPCConfig
 from uavtrack_env.geometry import feature_rates
 
 REF = np.array([0.0, 0.0, 0.1, math.pi / 2])
@@ -33,11 +34,12 @@ def _plant(s: np.ndarray, u: np.ndarray, vq: np.ndarray, sub: int = 4) -> np.nda
     return s
 
 
-def run(solver: str, steps: int, **options) -> dict:
-    """Closed loop from each start; returns per-solve times, iterations and failures."""
+def run(solver: str, steps: int, **overrides) -> dict:
+    """Closed loop from each start (``overrides``: `NMPCConfig` fields); returns per-solve times,
+    iterations and failures."""
     nmpc_module._BUILT.clear()  # time a full build, not the shared one
     t0 = time.perf_counter()
-    ctrl = NMPC(REF, NMPCConfig(solver=solver), **options)
+    ctrl = NMPC(REF, NMPCConfig(solver=solver), **overrides)
     build = time.perf_counter() - t0
     times, iters, cold, fails, rescues = [], [], [], 0, 0
     for start in STARTS:
@@ -76,8 +78,8 @@ def main() -> None:
         "rti": ("rti", {}),
     }
     if args.jit:
-        variants["sqp + jit"] = ("sqp", {"options": NMPCOptions(jit=True)})
-        variants["rti + jit"] = ("rti", {"options": NMPCOptions(jit=True)})
+        variants["sqp + jit"] = ("sqp", {"jit": True})
+        variants["rti + jit"] = ("rti", {"jit": True})
     rows = {}
     for name, (solver, opts) in variants.items():
         runs = [run(solver, args.steps, **opts) for _ in range(args.repeats)]

@@ -12,16 +12,18 @@ GOOD = np.array([0.05, -0.02, 0.1, 0.03], np.float32)
 
 
 def _snapshot(env) -> dict:
+    snap = env.snapshot()
     return {
-        "position": env.position.copy(),
-        "yaw": env.yaw.copy(),
-        "velocity": env.velocity.copy(),
+        "position": snap.positions,
+        "yaw": snap.yaws,
+        "velocity": snap.velocities,
+        "yaw_rate": snap.yaw_rates,
         "num_cycles": env.num_cycles,
-        "target": env.target.center(),
-        "target_heading": env.target.heading,
+        "target": snap.target_center,
+        "target_heading": snap.target_heading,
         "rng": copy.deepcopy(env.np_random.bit_generator.state),
         "agents": list(env.agents),
-        "alive": env.alive.copy(),
+        "alive": snap.alive,
     }
 
 
@@ -85,6 +87,21 @@ def test_bad_action_values_raise_and_change_nothing(make_env, bad, error, patter
     with pytest.raises(error, match=pattern) as exc:
         env.step(actions)
     assert who in str(exc.value)  # the message names the offending agent
+    _assert_unchanged(before, _snapshot(env))
+    _same_next_step(env, twin)
+
+
+@pytest.mark.parametrize(("bad", "error", "pattern"), BAD_ACTIONS)
+def test_validate_actions_raises_the_same_errors_and_changes_nothing(make_env, bad, error, pattern):
+    """The public check the shield wrapper uses: step()'s errors, without stepping."""
+    env, twin = _ready(make_env)
+    before = _snapshot(env)
+    with pytest.raises(error, match=pattern) as exc:
+        env.validate_actions({"uav_0": GOOD, "uav_1": bad, "uav_2": GOOD})
+    assert "uav_1" in str(exc.value)
+    u, clipped = env.validate_actions({a: GOOD for a in env.agents})
+    np.testing.assert_array_equal(u, np.tile(GOOD.astype(np.float64), (3, 1)) * [10, 10, 10, 0.6])
+    assert not clipped.any()
     _assert_unchanged(before, _snapshot(env))
     _same_next_step(env, twin)
 

@@ -597,8 +597,8 @@ def test_random_worlds_start_feasible(make_env, n_uavs, spread):
             clear = point_box_distance(pos, lay.obstacle_centers, lay.obstacle_half_extents)
             assert clear.min() > cfg.uav_radius, seed
         d = np.linalg.norm(pos[:, None] - pos[None], axis=-1)
-        assert d[~np.eye(n_uavs, dtype=bool)].min() >= cfg.cbf.r_s, seed
-        n_comp, _ = connected_components(d <= cfg.cbf.r_c, directed=False)
+        assert d[~np.eye(n_uavs, dtype=bool)].min() >= cfg.violations.r_s, seed
+        n_comp, _ = connected_components(d <= cfg.comms.r_c, directed=False)
         assert n_comp == 1, seed
         assert np.all(pos[:, 2] > cfg.uav_radius)
         for a in env.agents:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 
@@ -11,7 +12,8 @@ import pytest
 from baselines import evaluate
 from tests.conftest import METRICS_UAV_KEYS
 from uavtrack_env import uavtrack_v0
-from uavtrack_env.expert import PLANNERS, ExpertPolicy
+from uavtrack_env.expert import ExpertPolicy
+from uavtrack_env.presets import PRESETS
 
 
 def test_evaluate_cli_writes_valid_metrics(tmp_path):
@@ -20,9 +22,16 @@ def test_evaluate_cli_writes_valid_metrics(tmp_path):
     m = json.loads((out / "metrics.json").read_text())
     assert {"scenario", "init", "seed", "duration_s", "uavs", "timing_ms"} <= set(m)
     assert m["scenario"] == "A" and m["init"] == 0 and m["seed"] == 0
-    assert m["planner"] == "tuned" and m["safety_rows"] == 4  # the CLI's default planner
-    assert m["occlusion_model"] == "moving-target" and m["occlusion_point"] == "edges"
-    assert m["lag_aware_cbf"] is True and m["dynamics"] == "lag"
+    cfg = m["config"]
+    assert m["preset"] == cfg["preset"] == "tuned"  # the CLI's default preset
+    assert cfg["expert"]["nmpc"]["safety_rows"] == 4
+    assert cfg["expert"]["cbf"]["occlusion_model"] == "moving-target"
+    assert cfg["expert"]["cbf"]["occlusion_point"] == "edges"
+    assert cfg["expert"]["lag_aware"] is True and cfg["env"]["dynamics"]["model"] == "lag"
+    assert cfg["command"].startswith("python -m ") and "--scenario A" in cfg["command"]
+    assert cfg["commit"] and "casadi" in cfg["versions"]
+    assert json.loads((out / "config.json").read_text()) == cfg
+    assert m["real_time_factor"] > 0
     assert m["duration_s"] == pytest.approx(1.0)
     assert set(m["uavs"]) == {"uav_0", "uav_1", "uav_2"}
     for r in m["uavs"].values():
@@ -52,13 +61,13 @@ def test_expert_never_reads_ground_truth():
         obs, _, _, _, infos = env.step(act)
 
 
-@pytest.mark.parametrize("planner", ["paper", "tuned"])
-def test_expert_tracks_and_stays_safe_from_a_perturbed_start(planner: str):
+@pytest.mark.slow
+@pytest.mark.parametrize("preset", ["paper", "tuned"])
+def test_expert_tracks_and_stays_safe_from_a_perturbed_start(preset: str):
     """Closed loop, 10 s of scenario A with the lag model: features converge, no violation."""
     env = uavtrack_v0.parallel_env(scenario="A", max_cycles=800, dynamics={"model": "lag"})
     obs, infos = env.reset(seed=1)
-    nmpc, ukf = PLANNERS[planner]
-    expert = ExpertPolicy.from_env(env, nmpc=nmpc, ukf=ukf)
+    expert = ExpertPolicy.from_env(env, preset)
     errors = []
     while env.agents:
         obs, _, term, _, infos = env.step(expert(obs, infos))
@@ -73,15 +82,17 @@ def test_expert_tracks_and_stays_safe_from_a_perturbed_start(planner: str):
     env.close()
 
 
-def test_evaluate_cli_passes_the_occlusion_options_to_the_env():
+def test_evaluate_cli_builds_the_expert_from_preset_and_overrides():
     args = evaluate.parse_args(
-        ["--occlusion-model", "paper", "--occlusion-point", "centre", "--gamma-o", "0.5"]
+        ["--preset", "paper", "--set", "cbf.gamma_o=0.5", "--set", "nmpc.horizon=20", "--jit"]
     )
-    env = uavtrack_v0.parallel_env(**evaluate._env_kwargs(args, "A", 0, 10))
-    cbf = env.config.cbf
-    assert (cbf.occlusion_model, cbf.occlusion_point) == ("paper", "centre")
-    assert cbf.gamma_o == 0.5
-    env.close()
+    cfg = evaluate.expert_settings(args.preset, args.set, args.no_cbf, args.jit)
+    assert cfg.cbf == dataclasses.replace(PRESETS["paper"].cbf, gamma_o=0.5)
+    assert (cfg.cbf.occlusion_model, cfg.cbf.occlusion_point) == ("paper", "centre")
+    assert cfg.nmpc.horizon == 20 and cfg.nmpc.jit and cfg.use_cbf
+    assert not evaluate.expert_settings("tuned", [], True, False).use_cbf
+    with pytest.raises(SystemExit):
+        evaluate.parse_args(["--preset", "fastest"])
 
 
 def test_lag_aware_expert_differences_messages_into_neighbour_velocities():
@@ -89,27 +100,32 @@ def test_lag_aware_expert_differences_messages_into_neighbour_velocities():
     estimate of its neighbours' velocities, from consecutive messages, equals their velocity."""
     env = uavtrack_v0.parallel_env(scenario="A", max_cycles=20, dynamics={"model": "lag"})
     _, infos = env.reset(seed=2)
-    expert = ExpertPolicy.from_env(env, lag_aware=True)
-    assert expert.shield.options.lag_tau == env.config.dynamics.tau
+    expert = ExpertPolicy.from_env(env, "tuned")
+    onboard = expert.onboard["uav_0"]
+    assert onboard.filter.options.lag_tau == env.config.dynamics.tau
     rng = np.random.default_rng(0)
     for k in range(6):
-        st = expert.agents["uav_0"]
-        got = st.neighbour_velocities(infos["uav_0"]["neighbours"])
+        onboard.observe(infos["uav_0"])
+        got = onboard.context().neighbour_velocities
         if k >= 2:  # the UAVs are moving and the previous messages are known
             for row, name in zip(got, infos["uav_0"]["neighbours"], strict=True):
                 np.testing.assert_allclose(row, infos[name]["own"]["velocity"], atol=1e-9)
             assert np.abs(got).max() > 0.1
         actions = {a: rng.uniform(-1, 1, 4).astype(np.float32) for a in env.agents}
         infos = env.step(actions)[4]
-    assert ExpertPolicy.from_env(env).shield.options.lag_tau == env.config.dynamics.tau
-    assert ExpertPolicy.from_env(env, lag_aware=False).shield.options.lag_tau == 0.0
+    paper = ExpertPolicy.from_env(env, "paper")  # the paper's first-order rows
+    assert paper.onboard["uav_0"].filter.options.lag_tau == 0.0
     env.close()
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     "rows, hidden",
-    [((), False), (("--occlusion-model", "paper", "--occlusion-point", "axis"), True)],
-    ids=["default-rows", "session-8-rows"],
+    [
+        ((), False),
+        (("--set", "cbf.occlusion_model=paper", "--set", "cbf.occlusion_point=axis"), True),
+    ],
+    ids=["default-rows", "axis-rows-eq43"],
 )
 def test_default_occlusion_rows_keep_the_whole_car_visible_in_b0(tmp_path, rows, hidden):
     """Closed loop, B0's first 16 s: with evaluate's default rows (edges, moving target) no

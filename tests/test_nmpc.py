@@ -7,8 +7,9 @@ import math
 import numpy as np
 import pytest
 
-from uavtrack_env.config import DT, ControlLimits, NMPCConfig
-from uavtrack_env.control import NMPC, NMPCOptions
+from uavtrack_env.config import DT, ControlLimits
+from uavtrack_env.control import NMPC
+from uavtrack_env.control.config import NMPCConfig
 from uavtrack_env.geometry import feature_rates
 
 U_MAX = ControlLimits().scale
@@ -41,6 +42,7 @@ def ipopt() -> NMPC:
     return NMPC(REF, NMPCConfig(solver="ipopt"), error_signal=False)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     "s0",
     [
@@ -264,7 +266,7 @@ def test_bad_construction_raises() -> None:
     with pytest.raises(ValueError, match="reference"):
         NMPC(np.array([0.0, 0.0, 0.1]))
     with pytest.raises(ValueError, match="integrator"):
-        NMPCOptions(integrator="euler2")  # type: ignore[arg-type]
+        NMPCConfig(integrator="euler2")  # type: ignore[arg-type]
     with pytest.raises(TypeError):
         NMPC(REF, not_an_option=1)
 
@@ -359,4 +361,4 @@ def test_invalid_terminal_weight_is_rejected() -> None:
     with pytest.raises(ValueError, match="needs every r_u > 0"):
         NMPCConfig(terminal_weight="lqr", r_u=(0.02, 0.03, 0.0, 0.3))
     with pytest.raises(ValueError, match="ipopt_tol"):
-        NMPCOptions(ipopt_tol=0.0)
+        NMPCConfig(ipopt_tol=0.0)

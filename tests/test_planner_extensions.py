@@ -9,12 +9,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from uavtrack_env.config import DT, CBFConfig, ControlLimits, NMPCConfig
-from uavtrack_env.control import NMPC, NMPCOptions
+from uavtrack_env.config import DT, ControlLimits
+from uavtrack_env.control import NMPC
+from uavtrack_env.control.config import NMPCConfig
 from uavtrack_env.estimation import Measurement, TargetEstimator, UKFConfig
-from uavtrack_env.expert import TUNED_NMPC
 from uavtrack_env.geometry import cam_to_world_vec, world_to_cam_vec
+from uavtrack_env.presets import PRESETS
 from uavtrack_env.safety import SafetyContext, SafetyFilter
+from uavtrack_env.safety.config import CBFConfig
 
 REF = np.array([0.0, 0.0, 0.1, math.pi / 2])
 W_MAX = ControlLimits().scale[3]
@@ -128,7 +130,7 @@ def test_safety_rows_without_slots_raise() -> None:
 @pytest.mark.parametrize(
     "kw, match",
     [
-        ({"safety_rows": -1}, "safety_rows must be >= 0"),
+        ({"safety_rows": -1}, "safety_rows must be an integer >= 0"),
         ({"safety_row_stages": 0}, "safety_row_stages"),
         ({"safety_row_stages": 51}, "safety_row_stages"),
         ({"yaw_rate_reference": "heading"}, "yaw_rate_reference"),
@@ -187,9 +189,9 @@ def test_fit_ignores_the_settle_time() -> None:
 def test_tuned_sqp_solves_the_recorded_warm_start_that_made_qrqp_cycle() -> None:
     """A warm start recorded in scenario C with the tuned planner (tests/data): with qrqp's
     min_lam = 0 its QPs cycled and the SQP stopped ('Search_Direction_Becomes_Too_Small', casadi
-    3.8.2). With the default `NMPCOptions.qrqp_min_lam` the SQP converges, to Ipopt's solution."""
+    3.8.2). With the default `NMPCConfig.qrqp_min_lam` the SQP converges, to Ipopt's solution."""
     case = np.load(Path(__file__).parent / "data" / "qrqp_cycling_warm_start.npz")
-    ctl = NMPC(case["p"][4:8], TUNED_NMPC)
+    ctl = NMPC(case["p"][4:8], PRESETS["tuned"].nmpc)
     args = {k: case[k] for k in ("x0", "lam_g0", "lam_x0", "p")}
     args.update(lbx=ctl._lbx, ubx=ctl._ubx, lbg=ctl._lbg, ubg=ctl._ubg)
     ok, sol, status, _ = ctl._call(ctl._solver, args)
@@ -202,4 +204,4 @@ def test_tuned_sqp_solves_the_recorded_warm_start_that_made_qrqp_cycle() -> None
 
 def test_qrqp_min_lam_must_be_non_negative() -> None:
     with pytest.raises(ValueError, match="qrqp_min_lam"):
-        NMPCOptions(qrqp_min_lam=-1.0)
+        NMPCConfig(qrqp_min_lam=-1.0)

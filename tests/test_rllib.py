@@ -171,6 +171,7 @@ def local_ray():
     ray.shutdown()
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("shield", [HAVE_SHIELD])
 def test_tiny_training_writes_checkpoint(local_ray, tmp_path, shield):
     import torch
@@ -193,7 +194,9 @@ def test_tiny_training_writes_checkpoint(local_ray, tmp_path, shield):
     assert (checkpoint / "rllib_checkpoint.json").is_file()
     lines = (tmp_path / "progress.jsonl").read_text().splitlines()
     assert [json.loads(x)["iteration"] for x in lines] == [1]
-    assert json.loads((tmp_path / "config.json").read_text())["shield"] is shield
+    record = json.loads((tmp_path / "config.json").read_text())
+    assert record["rllib"]["shield"] is shield and record["expert"]["cbf"]["gamma_s"] == 3.0
+    assert record["env"]["max_cycles"] == 20 and record["commit"]
     if shield:
         assert 0.0 <= history[0]["shield_intervention_rate"] <= 1.0
 

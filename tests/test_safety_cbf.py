@@ -8,7 +8,6 @@ import numpy as np
 import pytest
 from scipy.optimize import minimize_scalar
 
-from uavtrack_env.config import CBFConfig
 from uavtrack_env.safety import SafetyContext, SafetyFilter, build_rows, check_eq28
 from uavtrack_env.safety.cbf import (
     CONNECT,
@@ -19,6 +18,7 @@ from uavtrack_env.safety.cbf import (
     UAV,
     occluder_points,
 )
+from uavtrack_env.safety.config import CBFConfig
 
 EPS = 1e-6
 
@@ -84,7 +84,7 @@ def check_family(rows, kind, h_of, rng, trials=5):
 @pytest.mark.parametrize("seed", range(6))
 def test_collision_connectivity_floor_rows_match_finite_differences(seed):
     rng = np.random.default_rng(seed)
-    cbf = CBFConfig()
+    cbf = CBFConfig().resolve()
     ctx = random_context(rng)
     rows = build_rows(ctx, cbf, connectivity_margin=0.3)
     p, nb = ctx.position, ctx.neighbours
@@ -100,7 +100,7 @@ def test_collision_connectivity_floor_rows_match_finite_differences(seed):
 @pytest.mark.parametrize("seed", range(6))
 def test_obstacle_and_moving_target_rows_match_finite_differences(seed):
     rng = np.random.default_rng(100 + seed)
-    cbf = CBFConfig()
+    cbf = CBFConfig().resolve()
     ctx = random_context(rng)
     # put the UAV inside one obstacle to exercise the penetration branch too
     centers = ctx.obstacle_centers.copy()
@@ -128,7 +128,7 @@ def test_obstacle_and_moving_target_rows_match_finite_differences(seed):
 
 def test_target_row_near_box_surface_and_rotated():
     """A UAV beside the long side of a yawed car: h = (gap)^2 - c^2 in closed form."""
-    cbf = CBFConfig()
+    cbf = CBFConfig().resolve()
     heading = 0.7
     left = np.array([-np.sin(heading), np.cos(heading), 0.0])  # car's +y axis in the world
     gap = 1.5
@@ -144,7 +144,9 @@ def test_target_row_near_box_surface_and_rotated():
 @pytest.mark.parametrize("seed", range(6))
 def test_occlusion_rows_match_finite_differences(model, seed):
     rng = np.random.default_rng(200 + seed)
-    cbf = CBFConfig(occlusion_model=model, occlusion_point="centre", occlusion_size_margin=False)
+    cbf = CBFConfig(
+        occlusion_model=model, occlusion_point="centre", occlusion_size_margin=False
+    ).resolve()
     ctx = random_context(rng, occlusion_model=model, moving=True)
     rows = build_rows(ctx, cbf)
     p, c, q, vq = ctx.position, ctx.obstacle_centers, ctx.target_position, ctx.target_velocity
@@ -216,7 +218,7 @@ def test_box_occluder_rows_match_finite_differences(point, seed, model):
     independent minimisation and its rows the finite-difference rate."""
     overrides, h_fn, base, _ = BOX_OCCLUDERS[point]
     rng = np.random.default_rng(base + seed)
-    cbf = CBFConfig(occlusion_model=model, occlusion_point=point, **overrides)
+    cbf = CBFConfig(occlusion_model=model, occlusion_point=point, **overrides).resolve()
     ctx = random_context(rng, occlusion_model=model, moving=True)
     rows = build_rows(ctx, cbf)
     p, c, hx = ctx.position, ctx.obstacle_centers, ctx.obstacle_half_extents
@@ -273,8 +275,8 @@ def test_neighbour_sets_follow_the_paper():
 
 def test_eq28_is_enforced():
     with pytest.raises(ValueError, match=r"eq. \(28\)"):
-        CBFConfig(gamma_s=0.1)
-    bad = CBFConfig()
+        CBFConfig(gamma_s=0.1).resolve()
+    bad = CBFConfig().resolve()
     object.__setattr__(bad, "gamma_s", 0.01)  # bypass the dataclass check: the filter re-checks
     with pytest.raises(ValueError, match=r"eq. \(28\)"):
         check_eq28(bad)
@@ -315,7 +317,7 @@ def _segment_hits_box(a, b, center, half) -> bool:
 
 
 def test_edges_occluder_sees_a_cube_whose_axis_point_misses():
-    """Scenario B0, UAV3 at 18.7 s with --occlusion-model moving-target (traced in session 8):
+    """Scenario B0, UAV3 at 18.7 s with --occlusion-model moving-target:
     a 1 m cube beside and below the UAV hides the car's lower far corner. Its axis point lies
     outside the theta* cone, so the 'axis' barrier is satisfied; its nearest top edge lies
     inside, so the 'edges' barrier is violated, as it should be."""

@@ -6,9 +6,10 @@ import numpy as np
 import pytest
 from scipy.optimize import linprog, minimize
 
-from uavtrack_env.config import DT, CBFConfig
+from uavtrack_env.config import DT
 from uavtrack_env.geometry import cam_to_world_vec, world_to_cam_vec
 from uavtrack_env.safety import SOLVERS, SafetyContext, SafetyFilter, build_rows
+from uavtrack_env.safety.config import CBFConfig
 
 BACKENDS = list(SOLVERS)
 
@@ -43,7 +44,7 @@ def test_safe_nominal_is_returned_unchanged(solver):
 def test_one_active_row_gives_the_halfspace_projection(solver, case):
     """With one violated row a^T V <= b, the answer is V_hat - (a^T V_hat - b)/|a|^2 a."""
     yaw = 0.4
-    cbf = CBFConfig()
+    cbf = CBFConfig().resolve()
     if case == "uav":  # neighbour 3 m ahead along x: row 6 V_x <= gamma_s (9 - 4) / 2
         ctx = ctx_with(yaw=yaw, neighbours=[[3.0, 0.0, 5.0]])
         a, b = np.array([6.0, 0.0, 0.0]), 0.5 * cbf.gamma_s * 5.0
@@ -249,7 +250,7 @@ def box_clearance(p, c, h):
 def run_closed_loop(n, policy, seed, steps=2000, obstacle_model="box"):
     """Single integrators at 80 Hz, each UAV certifying with its own (distributed) context."""
     rng = np.random.default_rng(seed)
-    cbf = CBFConfig()
+    cbf = CBFConfig().resolve()
     f = SafetyFilter(cbf=cbf, obstacle_model=obstacle_model)
     ang = np.linspace(0, 2 * np.pi, n, endpoint=False) + 0.3
     p = np.c_[7.0 * np.cos(ang), 7.0 * np.sin(ang), rng.uniform(2.0, 4.0, n)]
@@ -308,13 +309,13 @@ POLICIES = {
 @pytest.mark.parametrize(
     ("policy", "n", "model"),
     [
-        ("random", 4, "box"),
+        pytest.param("random", 4, "box", marks=pytest.mark.slow),
         ("seek-uav", 3, "box"),
-        ("seek-uav", 6, "box"),
-        ("seek-obstacle", 4, "box"),
-        ("seek-obstacle", 4, "point"),
-        ("seek-ground", 5, "box"),
-        ("flee", 4, "box"),
+        pytest.param("seek-uav", 6, "box", marks=pytest.mark.slow),
+        pytest.param("seek-obstacle", 4, "box", marks=pytest.mark.slow),
+        pytest.param("seek-obstacle", 4, "point", marks=pytest.mark.slow),
+        pytest.param("seek-ground", 5, "box", marks=pytest.mark.slow),
+        pytest.param("flee", 4, "box", marks=pytest.mark.slow),
     ],
 )
 def test_closed_loop_forward_invariance(policy, n, model):

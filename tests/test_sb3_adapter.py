@@ -267,6 +267,7 @@ def _learn(seed: int) -> np.ndarray:
     return params
 
 
+@pytest.mark.slow
 def test_ppo_learns_on_adapter_and_seeds_reproduce():
     a, b, c = _learn(1), _learn(1), _learn(2)
     assert np.all(np.isfinite(a))

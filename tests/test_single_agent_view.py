@@ -120,13 +120,13 @@ def test_bad_action_raises_and_changes_nothing(make_view):
     view = make_view(others="expert")
     view.reset(seed=0)
     before = view.env.position.copy()
-    estimate = view.expert.agents["uav_1"].tracker.estimate
+    estimate = view.expert.onboard["uav_1"].estimate
     with pytest.raises(ValueError, match="not finite"):
         view.step(np.array([np.nan, 0, 0, 0]))
     with pytest.raises(ValueError, match="shape"):
         view.step(np.zeros(5))
     np.testing.assert_array_equal(view.env.position, before)
-    assert view.expert.agents["uav_1"].tracker.estimate is estimate
+    assert view.expert.onboard["uav_1"].estimate is estimate
     view.step(np.zeros(4))
 
 

@@ -25,6 +25,7 @@ def _small_world():
     return uavtrack_v0.parallel_env(scenario="random", max_cycles=40)
 
 
+@pytest.mark.slow
 def test_collect_records_the_experts_actions():
     obs, actions = bc.collect(_small_world, episodes=2, seed=7, progress=False)
     assert obs.shape == (2 * 40 * 3, _small_world().observation_space("uav_0").shape[0])
@@ -55,6 +56,7 @@ class _Box(gymnasium.Env):
         return np.zeros(5, np.float32), 0.0, True, False, {}
 
 
+@pytest.mark.slow
 def test_pretrain_fits_a_known_linear_map_and_sets_the_normaliser():
     rng = np.random.default_rng(0)
     obs = (rng.normal(size=(4000, 5)) * [1, 2, 3, 4, 5] + [5, 0, -5, 1, 2]).astype(np.float32)
@@ -72,6 +74,7 @@ def test_pretrain_fits_a_known_linear_map_and_sets_the_normaliser():
     assert np.sqrt(np.mean((pred - actions[:200]) ** 2)) < 0.25 * actions.std()
 
 
+@pytest.mark.slow
 def test_value_warmup_freezes_the_actor_and_trains_the_critic(tmp_path):
     """With the warm-up covering all steps, PPO changes the critic but not the cloned actor."""
     out = tmp_path / "run"
@@ -133,6 +136,7 @@ def _cloning_loss(model, normalizer, obs, actions) -> float:
         return float(bc.cloning_loss(model.policy, x, y, y.std(dim=0).clamp_min(1e-3)))
 
 
+@pytest.mark.slow
 def test_anchor_steps_keep_fitting_the_demonstrations(tmp_path):
     """With PPO's own step size at 0, only the anchor moves the actor: the loss must fall (it
     waits out the critic warm-up, whose frozen actor it must not touch)."""

@@ -13,9 +13,10 @@ pytest.importorskip("stable_baselines3")
 
 from stable_baselines3 import PPO
 
-from baselines.compare import comparison_table, env_args, make_eval_env, run_policy_episode
+from baselines.compare import comparison_table, make_eval_env, run_policy_episode
 from tests.conftest import METRICS_UAV_KEYS
 from train import ppo
+from uavtrack_env.presets import expert_config
 
 UAV_KEYS = METRICS_UAV_KEYS | {"theta_ok", "steps", "detection_kept_ok", "max_blocked_fraction"}
 # 2 copies x 3 UAVs = 6 rows; 64 steps per rollout -> 384 agent-steps per rollout
@@ -40,6 +41,7 @@ def _check_metrics(out, shielded: bool) -> None:
         assert m["duration_s"] == pytest.approx(0.25)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("shield", [False, True])
 def test_smoke_checkpoint_and_resume(tmp_path, shield):
     out = tmp_path / "run"
@@ -89,8 +91,7 @@ def dive(obs, infos):
 
 
 def test_episode_counts_on_a_ground_dive():
-    args = env_args("integrator", noiseless=True)
-    env = make_eval_env("A", 0, 80, args, shield=False)
+    env = make_eval_env("A", 0, 80, dynamics="integrator", shield=None, noise=False)
     m = run_policy_episode(env, dive, seed=0, steps=80, label="dive", dynamics="integrator")
     env.close()
     # 10 m/s down from 0.85 m: the sphere (r = 0.25) touches the ground after ~0.6/10 s = 4.8
@@ -102,7 +103,7 @@ def test_episode_counts_on_a_ground_dive():
     assert not any(u["collision_ok"] for u in m["uavs"].values())
     assert m["shield_intervention_rate"] is None
 
-    env = make_eval_env("A", 0, 80, args, shield=True)
+    env = make_eval_env("A", 0, 80, dynamics="integrator", shield=expert_config(), noise=False)
     s = run_policy_episode(env, dive, seed=0, steps=80, label="dive+shield", dynamics="integrator")
     env.close()
     assert s["agent_steps"] == 3 * 80  # survives the whole second

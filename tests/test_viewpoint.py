@@ -13,6 +13,7 @@ from uavtrack_env.control.viewpoint import (
     required_x2,
 )
 from uavtrack_env.expert import ExpertPolicy
+from uavtrack_env.presets import expert_config
 
 CFG = ViewpointConfig()
 
@@ -126,7 +127,11 @@ def _blocked_steps(viewpoint: ViewpointConfig, seconds: float, stop_at: int) -> 
     steps = round(seconds * 80)
     env = uavtrack_v0.parallel_env(scenario="C", max_cycles=steps, dynamics={"model": "lag"})
     obs, infos = env.reset(seed=0)
-    expert = ExpertPolicy.from_env(env, viewpoint=viewpoint)
+    # the paper's planner and occlusion rate condition (43) on the boxes' vertical axes
+    config = expert_config(
+        "paper", viewpoint=viewpoint, lag_aware=True, cbf={"occlusion_point": "axis"}
+    )
+    expert = ExpertPolicy.from_env(env, config)
     blocked = dict.fromkeys(env.possible_agents, 0)
     while env.agents:
         obs, _, _, _, infos = env.step(expert(obs, infos))

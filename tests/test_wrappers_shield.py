@@ -14,10 +14,12 @@ from pettingzoo.test import api_test, parallel_api_test, parallel_seed_test
 from pettingzoo.utils.conversions import parallel_to_aec
 
 from uavtrack_env import uavtrack_v0
-from uavtrack_env.config import CBFConfig
 from uavtrack_env.geometry import world_to_cam_vec
+from uavtrack_env.presets import expert_config
+from uavtrack_env.runner import run_episode
+from uavtrack_env.safety import ShieldMargins, shield_cbf
+from uavtrack_env.safety.config import CBFConfig
 from uavtrack_env.wrappers import CBFShield
-from uavtrack_env.wrappers.shield import ShieldMargins, shield_cbf
 
 EPISODES = 20
 STEPS = 200  # 2.5 s at 80 Hz: a full-speed UAV crosses 25 m, the whole random world's formation
@@ -100,13 +102,13 @@ def run_episodes(
     policy: str,
     shield: bool,
     a_max: float | None = None,
-    lag_tau: float | None = None,
+    lag_aware: bool = True,
     episodes: int = EPISODES,
 ) -> dict:
     """Violation counts over seeded random worlds (every step, every agent), and with the shield
     the least barrier value of each `EXACT_HARD` family over every certify call. ``a_max``: run
-    under the 'lag' plant with that acceleration bound (None: the integrator); ``lag_tau``: the
-    shield's (None: its default)."""
+    under the 'lag' plant with that acceleration bound (None: the integrator); ``lag_aware``:
+    the shield's second-order rows under the lag (False: the paper's first-order rows)."""
     totals = {"collision": 0, "disconnection": 0, "active": 0, "agent_steps": 0, "statuses": {}}
     totals["min_h"] = dict.fromkeys(EXACT_HARD, math.inf)
     dynamics = {} if a_max is None else {"dynamics": {"model": "lag", "a_max": a_max}}
@@ -114,37 +116,41 @@ def run_episodes(
         raw = uavtrack_v0.parallel_env(
             scenario="random", max_cycles=STEPS, terminate_on_collision="agent", **dynamics
         )
-        if shield and lag_tau is not None:
+        if shield:
             with warnings.catch_warnings():
-                warnings.simplefilter("ignore")  # lag_tau = 0 warns; that is tested apart
-                env = CBFShield(raw, lag_tau=lag_tau)
+                warnings.simplefilter("ignore")  # first-order rows warn; that is tested apart
+                env = CBFShield(raw, expert_config(lag_aware=lag_aware))
         else:
-            env = CBFShield(raw) if shield else raw
+            env = raw
+        rng = np.random.default_rng(ep)
+        modes = _modes(ep, env.possible_agents)
+
+        def adversary(_obs, infos, env=env, rng=rng, modes=modes):
+            return POLICIES[policy](env, infos, rng, modes)
+
+        def tally(infos, env=env):
+            for agent, info in infos.items():
+                rep = info["shield"]
+                totals["active"] += rep["active"]
+                totals["statuses"][rep["status"]] = totals["statuses"].get(rep["status"], 0) + 1
+                for name, h in env.last_reports[agent].h.items():
+                    kind = name.split(":")[0]
+                    if kind in EXACT_HARD:
+                        totals["min_h"][kind] = min(totals["min_h"][kind], h)
+
         try:
-            _obs, infos = env.reset(seed=100 + ep)
-            rng = np.random.default_rng(ep)
-            modes = _modes(ep, env.possible_agents)
-            while env.agents:
-                actions = POLICIES[policy](env, infos, rng, modes)
-                _obs, _rew, _term, _trunc, infos = env.step(actions)
-                for agent, info in infos.items():
-                    totals["collision"] += info["violations"]["collision"]
-                    totals["disconnection"] += info["violations"]["disconnection"]
-                    totals["agent_steps"] += 1
-                    if shield:
-                        rep = info["shield"]
-                        totals["active"] += rep["active"]
-                        st = totals["statuses"]
-                        st[rep["status"]] = st.get(rep["status"], 0) + 1
-                        for name, h in env.last_reports[agent].h.items():
-                            kind = name.split(":")[0]
-                            if kind in EXACT_HARD:
-                                totals["min_h"][kind] = min(totals["min_h"][kind], h)
+            m = run_episode(
+                env, adversary, seed=100 + ep, steps=STEPS, on_step=tally if shield else None
+            ).metrics
         finally:
             env.close()
+        totals["collision"] += m["violation_steps"]["collision"]
+        totals["disconnection"] += m["violation_steps"]["disconnection"]
+        totals["agent_steps"] += m["agent_steps"]
     return totals
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("policy", sorted(POLICIES))
 def test_shield_prevents_every_collision_and_disconnection(policy):
     shielded = run_episodes(policy, True)
@@ -154,6 +160,7 @@ def test_shield_prevents_every_collision_and_disconnection(policy):
     assert shielded["active"] > 0.05 * shielded["agent_steps"], shielded  # it did work
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("policy", sorted(POLICIES))
 def test_same_policies_unshielded_violate(policy):
     free = run_episodes(policy, False)
@@ -170,20 +177,22 @@ def test_lag_plant_gets_second_order_rows_by_default(make_env):
         shielded = CBFShield(raw)
     assert shielded.filter.options.lag_tau == raw.config.dynamics.tau
     with pytest.warns(UserWarning, match="best effort"):
-        CBFShield(raw, lag_tau=0.0)
+        CBFShield(raw, expert_config(lag_aware=False))
     assert CBFShield(make_env(False, scenario="A")).filter.options.lag_tau == 0.0
 
 
+@pytest.mark.slow
 def test_second_order_rows_keep_the_barriers_of_the_lag_plant():
     """Without the acceleration clip (the plant the rows assume), hostile seekers never drive an
     exactly known hard barrier below 0 through the second-order rows; the paper's first-order
     rows let the obstacle and floor barriers go negative in the same episodes."""
     second = run_episodes("seeker", True, a_max=1e6, episodes=10)
     assert min(second["min_h"].values()) >= -1e-9, second
-    first = run_episodes("seeker", True, a_max=1e6, lag_tau=0.0, episodes=10)
+    first = run_episodes("seeker", True, a_max=1e6, lag_aware=False, episodes=10)
     assert min(first["min_h"]["obstacle"], first["min_h"]["floor"]) < -0.05, first
 
 
+@pytest.mark.slow
 def test_lag_shield_prevents_collisions_with_the_acceleration_bound():
     """With the env's |a| <= a_max the rows' model is only approximate (a clipped braking
     command brakes less): still no collision and no broken link, thanks to the margins."""
@@ -228,7 +237,7 @@ def test_floor_correction_is_the_projection(make_env):
     env = make_env(scenario="A", max_cycles=50)
     env.reset(seed=0)
     _place(env, {"uav_1": [-6.0, 0.0, 0.6]})
-    cbf = env.unwrapped.config.cbf
+    cbf = env.cbf
     z = env.unwrapped.position[1, 2]
     nominal = np.array([0.3, 0.8, -0.2, 0.5])  # v_cy = +8 m/s: straight down at 8 m/s
     _o, _r, _t, _tr, infos = env.step(
@@ -251,15 +260,15 @@ def test_uav_pair_correction_is_the_projection(make_env):
     raw = env.unwrapped
     p0, p1 = raw.position[0].copy(), raw.position[1].copy()
     yaw0 = raw.yaw[0]
-    cbf = raw.config.cbf
+    cbf = env.cbf  # the world's R_s = 2 m plus the 5 cm margin
+    assert cbf.r_s == pytest.approx(2.05)
     v_world = np.array([0.5, -5.0, 0.0])  # towards uav_1, a little sideways
     nominal = np.r_[world_to_cam_vec(v_world, yaw0) / 10.0, 0.0]
     _o, _r, _t, _tr, infos = env.step(
         {a: nominal if a == "uav_0" else np.zeros(4) for a in env.agents}
     )
     a = -2.0 * (p0 - p1)
-    r_s = cbf.r_s + 0.05
-    b = 0.5 * cbf.gamma_s * (np.sum((p0 - p1) ** 2) - r_s**2)
+    b = 0.5 * cbf.gamma_s * (np.sum((p0 - p1) ** 2) - cbf.r_s**2)
     assert a @ v_world > b  # the nominal violates the row
     v_safe = v_world - (a @ v_world - b) * a / (a @ a)
     rep = infos["uav_0"]["shield"]
@@ -272,7 +281,7 @@ def test_uav_pair_correction_is_the_projection(make_env):
 
 # --------------------------------------------------------------------------- configuration
 def test_margins_and_eq28():
-    base = CBFConfig()
+    base = CBFConfig().resolve(2.0, 20.0)
     cbf = shield_cbf(base, ShieldMargins())
     assert cbf.r_s == pytest.approx(2.05) and cbf.r_c == pytest.approx(19.95)
     assert cbf.d_s <= cbf.r_c
@@ -286,17 +295,26 @@ def test_margins_and_eq28():
 
 def test_bad_configuration(make_env):
     raw = make_env(False, scenario="A")
-    with pytest.raises(TypeError, match="unknown CBFShield argument"):
-        CBFShield(raw, not_an_option=1)
-    with pytest.raises(ValueError, match="looser"):
-        CBFShield(raw, cbf={"r_s": 1.0})
+    with pytest.raises(TypeError, match="unknown field"):
+        CBFShield(raw, expert_config(not_an_option=1))
+    with pytest.raises(ValueError, match="unknown preset 'safest'"):
+        CBFShield(raw, "safest")
+    with pytest.raises(TypeError, match="preset must be a name or an ExpertConfig"):
+        CBFShield(raw, 3)
+    with pytest.raises(ValueError, match="below the world's collision range"):
+        CBFShield(raw, expert_config(cbf={"r_s": 1.0}))
     with pytest.raises(ValueError, match="surface_gap"):
-        CBFShield(raw, cbf={"z_min": 0.3})
+        CBFShield(raw, expert_config(cbf={"z_min": 0.3}))
     with pytest.raises(ValueError, match="r_s_margin"):
-        CBFShield(raw, r_s_margin=math.nan)
-    shielded = CBFShield(raw, occlusion=False, r_s_margin=0.1, cbf={"gamma_o": 0.5})
+        CBFShield(raw, expert_config(margins={"r_s_margin": math.nan}))
+    cfg = expert_config(
+        shield={"occlusion": False}, margins={"r_s_margin": 0.1}, cbf={"gamma_o": 0.5}
+    )
+    shielded = CBFShield(raw, cfg)
     assert shielded.filter.options.occlusion is False
     assert shielded.cbf.r_s == pytest.approx(2.1) and shielded.cbf.gamma_o == 0.5
+    stricter = CBFShield(raw, expert_config(cbf={"r_s": 3.0, "r_c": 15.0}))
+    assert stricter.cbf.r_s == pytest.approx(3.05) and stricter.cbf.r_c == pytest.approx(14.95)
 
 
 # -------------------------------------------------------------------------- PettingZoo API
@@ -361,7 +379,7 @@ def _snapshot(env) -> dict:
         "num_cycles": raw.num_cycles,
         "rng": copy.deepcopy(raw.np_random.bit_generator.state),
         "agents": list(raw.agents),
-        "estimate": env._trackers["uav_0"].estimate.target_position.copy(),
+        "estimate": env.onboard["uav_0"].estimate.target_position.copy(),
     }
 
 

@@ -20,12 +20,18 @@ import numpy as np
 from tqdm import tqdm
 
 from uavtrack_env.expert import ExpertPolicy
+from uavtrack_env.presets import ExpertConfig
 
 
 def collect(
-    make_env: Callable[[], Any], episodes: int, seed: int, progress: bool = True
+    make_env: Callable[[], Any],
+    episodes: int,
+    seed: int,
+    progress: bool = True,
+    config: ExpertConfig | str | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Expert rollouts of a full episode each on ``make_env()`` worlds seeded ``seed + e``.
+    """Expert rollouts of a full episode each on ``make_env()`` worlds seeded ``seed + e``;
+    ``config`` is the expert's `ExpertConfig` or preset name (default 'tuned').
 
     Returns (observations (N, n_obs), actions (N, 4)), float32, one row per live agent-step.
     """
@@ -36,7 +42,7 @@ def collect(
     for e in range(episodes):
         env = make_env()
         obs, infos = env.reset(seed=seed + e)
-        expert = ExpertPolicy.from_env(env)
+        expert = ExpertPolicy.from_env(env, config)
         while env.agents:
             actions = expert(obs, infos)
             for agent, a in actions.items():

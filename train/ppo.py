@@ -40,15 +40,16 @@ from typing import Any
 
 import numpy as np
 
-from baselines.compare import (
-    SB3Policy,
-    env_args,
-    eval_worlds,
-    make_eval_env,
-    run_policy_episode,
-)
+from baselines.compare import SB3Policy, eval_worlds, make_eval_env, run_policy_episode
 from baselines.evaluate import table
 from uavtrack_env.config import DT
+from uavtrack_env.presets import (
+    DEFAULT_PRESET,
+    ExpertConfig,
+    add_preset_arguments,
+    expert_config_from,
+)
+from uavtrack_env.provenance import cli_command, config_record
 
 ENV_FIELDS = (
     "shield",
@@ -61,6 +62,8 @@ ENV_FIELDS = (
     "collision_penalty",
     "start_offset",
     "start_heading_offset",
+    "preset",
+    "set",
 )
 """Arguments that define the training env; ``--resume`` takes them from the run's args.json."""
 BC_SEED = 50_000
@@ -72,6 +75,12 @@ class Args:
     """Command-line arguments (``--name-with-dashes``); each field's help is its metadata."""
 
     shield: bool = field(default=True, metadata={"help": "pass every action through CBFShield"})
+    preset: str = field(
+        default=DEFAULT_PRESET, metadata={"help": "the shield's and the expert's ExpertConfig"}
+    )
+    set: tuple[str, ...] = field(
+        default=(), metadata={"help": "FIELD=VALUE overrides of the preset (repeatable)"}
+    )
     timesteps: int = field(default=200_000, metadata={"help": "agent-steps to train (this call)"})
     seed: int = field(default=0, metadata={"help": "seed of torch, numpy and the env copies"})
     out: Path | None = field(default=None, metadata={"help": "output dir (default: --resume)"})
@@ -153,7 +162,10 @@ def parse_args(argv: list[str] | None = None) -> Args:
         description=__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
+    add_preset_arguments(ap)
     for f in dataclasses.fields(Args):
+        if f.name in ("preset", "set"):
+            continue
         flag = "--" + f.name.replace("_", "-")
         help_ = f"{f.metadata['help']} (default: {f.default})"
         if f.type in (bool, "bool"):
@@ -163,6 +175,7 @@ def parse_args(argv: list[str] | None = None) -> Args:
             ap.add_argument(flag, type=kind, default=None, help=help_)
     ns = ap.parse_args(argv)
     given = {k: v for k, v in vars(ns).items() if v is not None}
+    given["set"] = tuple(given.get("set", ()))
     return make_args(**given)
 
 
@@ -193,7 +206,30 @@ def make_args(**given: Any) -> Args:
         raise ValueError(f"--eval-scenarios takes letters of 'ABC', got {args.eval_scenarios!r}")
     if not args.eval_duration > 0:
         raise ValueError("--eval-duration must be > 0 s")
+    args.set = tuple(args.set)
+    expert_config_from(args.preset, list(args.set))  # a bad preset or --set fails here
     return args
+
+
+def expert_settings(args: Args) -> ExpertConfig:
+    """The shield's (and the demonstrating expert's) configuration."""
+    return expert_config_from(args.preset, list(args.set))
+
+
+def world_settings(args: Args) -> dict[str, Any]:
+    """The training world's env keyword arguments (EnvConfig fields)."""
+    return {
+        "scenario": "random",
+        "n_uavs": args.n_uavs,
+        "max_cycles": args.max_cycles,
+        "terminate_on_collision": args.terminate_on_collision,
+        "dynamics": {"model": args.dynamics},
+        "reward": {"shape": args.reward_shape, "collision_penalty": args.collision_penalty},
+        "random_world": {
+            "start_offset": args.start_offset,
+            "start_heading_offset": args.start_heading_offset,
+        },
+    }
 
 
 # ------------------------------------------------------------------------ env
@@ -201,27 +237,15 @@ def env_fn(args: Args):
     """Factory of one training copy: a random world, shielded if asked."""
     from uavtrack_env import uavtrack_v0
 
-    def make():
-        env = uavtrack_v0.parallel_env(
-            scenario="random",
-            n_uavs=args.n_uavs,
-            max_cycles=args.max_cycles,
-            terminate_on_collision=args.terminate_on_collision,
-            dynamics={"model": args.dynamics},
-            reward={"shape": args.reward_shape, "collision_penalty": args.collision_penalty},
-            random_world={
-                "start_offset": args.start_offset,
-                "start_heading_offset": args.start_heading_offset,
-            },
-        )
-        if args.shield:
-            import warnings
+    expert = expert_settings(args)
+    kwargs = world_settings(args)
 
+    def make():
+        env = uavtrack_v0.parallel_env(**kwargs)
+        if args.shield:
             from uavtrack_env.wrappers import CBFShield
 
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore")  # the 'lag' best-effort warning, once per copy
-                env = CBFShield(env)
+            env = CBFShield(env, expert)
         return env
 
     return make
@@ -337,7 +361,9 @@ def demonstrations(args: Args) -> tuple[np.ndarray, np.ndarray]:
             print(f"behaviour cloning: {len(d['obs'])} samples from {path}")
             return d["obs"], d["actions"]
     make = env_fn(dataclasses.replace(args, shield=False))
-    obs, actions = bc.collect(make, args.bc_episodes, BC_SEED + args.seed, args.progress)
+    obs, actions = bc.collect(
+        make, args.bc_episodes, BC_SEED + args.seed, args.progress, expert_settings(args)
+    )
     path.parent.mkdir(parents=True, exist_ok=True)
     np.savez_compressed(path, obs=obs, actions=actions)
     return obs, actions
@@ -346,63 +372,17 @@ def demonstrations(args: Args) -> tuple[np.ndarray, np.ndarray]:
 def train(args: Args):
     """Train (or resume) and save; returns the model and its VecEnv."""
     import torch
-    from stable_baselines3 import PPO
     from stable_baselines3.common.callbacks import CheckpointCallback
-    from stable_baselines3.common.vec_env import VecNormalize
 
     torch.set_num_threads(args.threads)
     out = args.out
     ckdir = out / "checkpoints"
     ckdir.mkdir(parents=True, exist_ok=True)
-    vec = make_vec_env(args)
-    if args.resume is not None:
-        path, norm = last_checkpoint(args.resume)
-        if isinstance(vec, VecNormalize) and norm is not None:
-            vec = VecNormalize.load(str(norm), vec.venv)
-            vec.seed(args.seed)
-        model = PPO.load(path, env=vec, device="cpu", tensorboard_log=str(out / "tb"))
-        print(f"resuming {path} at {model.num_timesteps} agent-steps")
-    else:
-        hidden = [int(h) for h in args.net_arch.split(",") if h]
-        model = PPO(
-            "MlpPolicy",
-            vec,
-            n_steps=args.n_steps,
-            batch_size=args.batch_size,
-            n_epochs=args.n_epochs,
-            learning_rate=args.learning_rate,
-            gamma=args.gamma,
-            gae_lambda=args.gae_lambda,
-            clip_range=args.clip_range,
-            ent_coef=args.ent_coef,
-            target_kl=args.target_kl or None,
-            policy_kwargs={
-                "net_arch": {"pi": hidden, "vf": hidden},
-                "log_std_init": args.log_std_init,
-            },
-            tensorboard_log=str(out / "tb"),
-            seed=args.seed,
-            device="cpu",
-            verbose=0,
-        )
+    model, vec = _model_and_env(args)
     bc_stats: dict = {}
     demos = demonstrations(args) if args.bc_episodes > 0 else None  # loaded once
     if args.resume is None and demos is not None:
-        from train import bc
-
-        obs, actions = demos
-        normalizer = vec if isinstance(vec, VecNormalize) else None
-        bc_stats = bc.pretrain(
-            model,
-            normalizer,
-            obs,
-            actions,
-            epochs=args.bc_epochs,
-            seed=args.seed,
-            progress=args.progress,
-        )
-        print("behaviour cloning: " + ", ".join(f"{k} {v:.4g}" for k, v in bc_stats.items()))
-        save_checkpoint(model, vec, ckdir)  # the cloned policy, before any PPO step
+        bc_stats = _clone_expert(args, model, vec, demos, ckdir)
     ckpt = CheckpointCallback(
         save_freq=max(1, args.checkpoint_freq // vec.num_envs),
         save_path=str(ckdir),
@@ -418,8 +398,92 @@ def train(args: Args):
         from train import bc
 
         callbacks.append(bc.anchor_callback(*demos, args.bc_anchor, seed=args.seed))
+    _learn(args, model, callbacks, rich_bar, bool(bc_stats))
+    elapsed = time.perf_counter() - t0
+    _save_run(args, model, vec, ckdir)
+    saved = {k: (str(v) if isinstance(v, Path) else v) for k, v in dataclasses.asdict(args).items()}
+    saved.update(
+        num_timesteps=int(model.num_timesteps),
+        this_call_timesteps=int(model.num_timesteps - start),
+        train_seconds=elapsed,
+        agent_steps_per_s=(model.num_timesteps - start) / elapsed,
+        **bc_stats,
+        training_violations=safety.totals,  # agent-steps of this call
+    )
+    (out / "args.json").write_text(json.dumps(saved, indent=2))
+    (out / "config.json").write_text(json.dumps(run_record(args), indent=2))
+    return model, vec
+
+
+def _model_and_env(args: Args):
+    """The VecEnv and the PPO model: the last checkpoint of ``--resume`` (with its VecNormalize
+    statistics), else a new model with the command line's hyperparameters."""
+    from stable_baselines3 import PPO
+    from stable_baselines3.common.vec_env import VecNormalize
+
+    out = args.out
+    vec = make_vec_env(args)
+    if args.resume is not None:
+        path, norm = last_checkpoint(args.resume)
+        if isinstance(vec, VecNormalize) and norm is not None:
+            vec = VecNormalize.load(str(norm), vec.venv)
+            vec.seed(args.seed)
+        model = PPO.load(path, env=vec, device="cpu", tensorboard_log=str(out / "tb"))
+        print(f"resuming {path} at {model.num_timesteps} agent-steps")
+        return model, vec
+    hidden = [int(h) for h in args.net_arch.split(",") if h]
+    model = PPO(
+        "MlpPolicy",
+        vec,
+        n_steps=args.n_steps,
+        batch_size=args.batch_size,
+        n_epochs=args.n_epochs,
+        learning_rate=args.learning_rate,
+        gamma=args.gamma,
+        gae_lambda=args.gae_lambda,
+        clip_range=args.clip_range,
+        ent_coef=args.ent_coef,
+        target_kl=args.target_kl or None,
+        policy_kwargs={
+            "net_arch": {"pi": hidden, "vf": hidden},
+            "log_std_init": args.log_std_init,
+        },
+        tensorboard_log=str(out / "tb"),
+        seed=args.seed,
+        device="cpu",
+        verbose=0,
+    )
+    return model, vec
+
+
+def _clone_expert(args: Args, model, vec, demos: tuple, ckdir: Path) -> dict:
+    """Fit the actor to the expert's demonstrations and save it as the first checkpoint;
+    returns the cloning statistics."""
+    from stable_baselines3.common.vec_env import VecNormalize
+
+    from train import bc
+
+    obs, actions = demos
+    normalizer = vec if isinstance(vec, VecNormalize) else None
+    bc_stats = bc.pretrain(
+        model,
+        normalizer,
+        obs,
+        actions,
+        epochs=args.bc_epochs,
+        seed=args.seed,
+        progress=args.progress,
+    )
+    print("behaviour cloning: " + ", ".join(f"{k} {v:.4g}" for k, v in bc_stats.items()))
+    save_checkpoint(model, vec, ckdir)  # the cloned policy, before any PPO step
+    return bc_stats
+
+
+def _learn(args: Args, model, callbacks: list, rich_bar: bool, cloned: bool) -> None:
+    """PPO for ``args.timesteps`` agent-steps; after cloning, the first ``--value-warmup`` of
+    them train the critic alone (the actor's parameters frozen)."""
     phases = [(args.timesteps, ())]
-    if bc_stats and args.value_warmup > 0:
+    if cloned and args.value_warmup > 0:
         from train.bc import actor_parameters
 
         warm = min(args.value_warmup, args.timesteps)
@@ -438,23 +502,48 @@ def train(args: Args):
         )
         for p in frozen:
             p.requires_grad_(True)
-    elapsed = time.perf_counter() - t0
-    # final save, also as a checkpoint so that --resume continues from the end
-    model.save(out / "model.zip")
+
+
+def _save_run(args: Args, model, vec, ckdir: Path) -> None:
+    """The final model and VecNormalize statistics, also as a checkpoint so that ``--resume``
+    continues from the end."""
+    from stable_baselines3.common.vec_env import VecNormalize
+
+    model.save(args.out / "model.zip")
     if isinstance(vec, VecNormalize):
-        vec.save(str(out / "vecnormalize.pkl"))
+        vec.save(str(args.out / "vecnormalize.pkl"))
     save_checkpoint(model, vec, ckdir)
-    saved = {k: (str(v) if isinstance(v, Path) else v) for k, v in dataclasses.asdict(args).items()}
-    saved.update(
-        num_timesteps=int(model.num_timesteps),
-        this_call_timesteps=int(model.num_timesteps - start),
-        train_seconds=elapsed,
-        agent_steps_per_s=(model.num_timesteps - start) / elapsed,
-        **bc_stats,
-        training_violations=safety.totals,  # agent-steps of this call
+
+
+def run_record(args: Args) -> dict:
+    """config.json: the training world, the shield's ExpertConfig, the arguments."""
+    from uavtrack_env.config import EnvConfig
+
+    args_dict = {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()}
+    return config_record(
+        args.preset,
+        EnvConfig.from_kwargs(**world_settings(args)),
+        expert_settings(args),
+        cli_command("train.ppo", command_line(args)),
+        args=args_dict,
     )
-    (out / "args.json").write_text(json.dumps(saved, indent=2))
-    return model, vec
+
+
+def command_line(args: Args) -> list[str]:
+    """The arguments that reproduce ``args`` (the fields that differ from their defaults)."""
+    argv = []
+    for f in dataclasses.fields(Args):
+        value = getattr(args, f.name)
+        if f.name in ("resume", "timesteps") or value == f.default:
+            continue
+        flag = "--" + f.name.replace("_", "-")
+        if isinstance(value, bool):
+            argv.append(flag if value else "--no-" + flag[2:])
+        elif isinstance(value, tuple):
+            argv += [x for item in value for x in (flag, str(item))]
+        else:
+            argv += [flag, str(value)]
+    return argv
 
 
 def evaluate_model(model, vec, args: Args) -> list[dict]:
@@ -467,16 +556,16 @@ def evaluate_model(model, vec, args: Args) -> list[dict]:
         normalizer.training = False
     policy = SB3Policy(model, normalizer)
     steps = max(1, round(args.eval_duration / DT))
-    eargs = env_args(args.dynamics)
     label = "PPO + shield" if args.shield else "PPO"
+    shield = expert_settings(args) if args.shield else None
+    record = run_record(args)
     runs = []
     for scenario, init, seed in eval_worlds(list(args.eval_scenarios), args.eval_seeds):
-        extra = {"n_uavs": args.n_uavs} if scenario == "random" else {}
-        env = make_eval_env(scenario, init, steps, eargs, args.shield, **extra)
+        env = make_eval_env(scenario, init, steps, dynamics=args.dynamics, shield=shield)
         m = run_policy_episode(
             env, policy, seed=seed, steps=steps, label=label, dynamics=args.dynamics
         )
-        m["timesteps"] = int(model.num_timesteps)
+        m.update(timesteps=int(model.num_timesteps), preset=args.preset, config=record)
         runs.append(m)
         env.close()
     (args.out / "metrics.json").write_text(json.dumps(runs, indent=2))

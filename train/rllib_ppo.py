@@ -26,6 +26,16 @@ from typing import Any
 import numpy as np
 from pettingzoo.utils.wrappers import BaseParallelWrapper
 
+from uavtrack_env.config import EnvConfig
+from uavtrack_env.presets import (
+    DEFAULT_PRESET,
+    PRESETS,
+    ExpertConfig,
+    add_preset_arguments,
+    expert_config_from,
+)
+from uavtrack_env.provenance import cli_command, config_record
+
 ENV_NAME = "uavtrack_rllib"
 """Name under which ``make_rllib_env`` is registered with Ray Tune's registry."""
 POLICY_ID = "shared"
@@ -39,6 +49,8 @@ class RLlibPPOConfig:
 
     shield: bool = True
     """Wrap the env in ``uavtrack_env.wrappers.CBFShield`` (the expert's CBF-QP (47))"""
+    expert: ExpertConfig = field(default_factory=lambda: PRESETS[DEFAULT_PRESET])
+    """The shield's settings (`uavtrack_env.presets`; the CLI's ``--preset`` and ``--set``)."""
     num_env_runners: int = 0
     """Remote EnvRunner actors; 0 samples in the driver process (no extra actor)."""
     num_envs_per_env_runner: int = 1
@@ -118,20 +130,20 @@ class SlimInfos(BaseParallelWrapper):
 def make_parallel_env(env_config: Mapping[str, Any]) -> Any:
     """The PettingZoo ParallelEnv RLlib trains on: env, optional CBFShield, optional SlimInfos.
 
-    ``env_config`` keys: ``shield`` (bool), ``slim_infos`` (bool), ``env_kwargs`` (dict).
+    ``env_config`` keys: ``shield`` (bool), ``expert`` (the shield's `ExpertConfig` or preset
+    name; default 'tuned'), ``slim_infos`` (bool), ``env_kwargs`` (dict).
     """
     from uavtrack_env import parallel_env
 
-    unknown = sorted(set(env_config) - {"shield", "slim_infos", "env_kwargs"})
+    keys = {"shield", "expert", "slim_infos", "env_kwargs"}
+    unknown = sorted(set(env_config) - keys)
     if unknown:
-        raise ValueError(
-            f"unknown env_config key(s) {unknown}; expected 'shield', 'slim_infos', 'env_kwargs'"
-        )
+        raise ValueError(f"unknown env_config key(s) {unknown}; expected {sorted(keys)}")
     env = parallel_env(**dict(env_config.get("env_kwargs", {})))
     if env_config.get("shield", True):
         from uavtrack_env.wrappers.shield import CBFShield  # lazy: the shield is optional here
 
-        env = CBFShield(env)
+        env = CBFShield(env, env_config.get("expert"))
     if env_config.get("slim_infos", True):
         env = SlimInfos(env)
     return env
@@ -213,6 +225,7 @@ def build_config(cfg: RLlibPPOConfig) -> Any:
         raise ValueError("train_batch_size, minibatch_size and num_epochs must be >= 1")
     env_config = {
         "shield": cfg.shield,
+        "expert": cfg.expert,
         "slim_infos": cfg.slim_infos,
         "env_kwargs": dict(cfg.env_kwargs),
     }
@@ -299,6 +312,8 @@ def train(
     iterations: int,
     out: str | Path,
     log: Callable[[str], None] = print,
+    preset: str | None = None,
+    command: str | None = None,
 ) -> tuple[Path, list[dict[str, float]]]:
     """Run ``iterations`` PPO iterations (Ray must be initialised), save a checkpoint in ``out``.
 
@@ -332,7 +347,16 @@ def train(
             algo.stop()
         torch.set_num_threads(threads)  # restore: the caller's process keeps its setting
     settings = {**asdict(cfg), "hidden": list(cfg.hidden), "env_kwargs": dict(cfg.env_kwargs)}
-    (out / "config.json").write_text(json.dumps({"iterations": iterations, **settings}, indent=2))
+    del settings["expert"]
+    record = config_record(
+        preset,
+        EnvConfig.from_kwargs(**dict(cfg.env_kwargs)),
+        cfg.expert,
+        command,
+        iterations=iterations,
+        rllib=settings,
+    )
+    (out / "config.json").write_text(json.dumps(record, indent=2))
     return checkpoint, history
 
 
@@ -352,6 +376,7 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
         prog="python -m train.rllib_ppo", description=__doc__.split("\n")[0]
     )
     p.add_argument("--shield", action=argparse.BooleanOptionalAction, default=True)
+    add_preset_arguments(p)
     p.add_argument("--iterations", type=int, default=10)
     p.add_argument("--num-env-runners", type=int, default=0)
     p.add_argument("--num-envs-per-env-runner", type=int, default=1)
@@ -401,6 +426,7 @@ def main(argv: Sequence[str] | None = None) -> Path:
     args = parse_args(argv)
     cfg = RLlibPPOConfig(
         shield=args.shield,
+        expert=expert_config_from(args.preset, args.set),
         num_env_runners=args.num_env_runners,
         num_envs_per_env_runner=args.num_envs_per_env_runner,
         num_learners=args.num_learners,
@@ -423,7 +449,8 @@ def main(argv: Sequence[str] | None = None) -> Path:
     cpus = args.num_env_runners + args.num_learners + 1
     init_ray(args.address, num_cpus=cpus, working_dir=args.working_dir)
     try:
-        checkpoint, _ = train(cfg, args.iterations, args.out)
+        command = cli_command("train.rllib_ppo", None if argv is None else list(argv))
+        checkpoint, _ = train(cfg, args.iterations, args.out, preset=args.preset, command=command)
     finally:
         ray.shutdown()
     print(f"checkpoint: {checkpoint}")

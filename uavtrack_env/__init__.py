@@ -6,11 +6,13 @@
 from . import uavtrack_v0
 from .config import EnvConfig
 from .env import UAVTrackEnv
+from .sensors import UAVSnapshot
 from .uavtrack_v0 import env, parallel_env, raw_env
 
 __version__ = "0.1.0"
 __all__ = [
     "EnvConfig",
+    "UAVSnapshot",
     "UAVTrackEnv",
     "__version__",
     "env",

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Any, ClassVar
 
 import gymnasium
@@ -15,33 +17,142 @@ from .dynamics import integrate
 from .geometry import occlusion_angle, point_box_distance, world_to_cam_vec
 from .rewards import connected, effort_term, reward, tracking_term
 from .scenarios import Layout, make_layout
-from .sensors import Detections, Detector, receive_positions
+from .sensors import Detections, Detector, UAVSnapshot, receive_positions
 from .target import CAR_HALF_EXTENTS, TargetMotion
 from .world import World
 
-OWN_FIELDS = (
-    (
-        "features",
-        5,
-        "measured x1, x2, x3, sin psi, cos psi (zeros when not detected), eqs. (6), (8)",
-    ),
-    ("detection", 2, "detected flag, visible fraction of the target"),
-    ("velocity", 3, "own velocity in the camera frame [v_cx, v_cy, v_cz] (m/s)"),
-    ("yaw_rate", 1, "own omega_cy (rad/s)"),
-    ("heading", 2, "sin yaw, cos yaw"),
-    ("altitude", 1, "own z (m)"),
-    ("reference", 5, "x1*, x2*, x3*, sin psi*, cos psi* of this agent's reference s*"),
-)
+Bound = float | Callable[[EnvConfig], float]
+"""An observation bound: a number, or a function of the env's config."""
+
+
+@dataclass(frozen=True)
+class ObsField:
+    """One block of the observation vector: its name, meaning and per-entry (low, high) bounds.
+
+    The bounds are finite; values beyond them are clipped (documented in the env's docstring).
+    """
+
+    name: str
+    meaning: str
+    bounds: tuple[tuple[Bound, Bound], ...]
+    """(low, high) of each entry, in order; a callable is evaluated on the EnvConfig."""
+
+    @property
+    def size(self) -> int:
+        return len(self.bounds)
+
+    def low_high(self, cfg: EnvConfig) -> tuple[list[float], list[float]]:
+        """The block's lower and upper bounds for ``cfg``."""
+        value = [[b(cfg) if callable(b) else b for b in pair] for pair in self.bounds]
+        return [lo for lo, _ in value], [hi for _, hi in value]
+
+
+def _inv_near(cfg: EnvConfig) -> float:
+    return 1 / cfg.camera.near
+
+
+def _speed(sign: float) -> Callable[[EnvConfig], float]:
+    """Bound of an observed speed: twice the command limit v_max."""
+    return lambda cfg: sign * 2.0 * cfg.limits.v_max
+
+
+def _turn(sign: float) -> Callable[[EnvConfig], float]:
+    return lambda cfg: sign * 2.0 * cfg.limits.omega_max
+
+
+def _comms(sign: float) -> Callable[[EnvConfig], float]:
+    return lambda cfg: sign * cfg.comms.r_c
+
+
 WORLD_LIMIT = 1.0e4
 """Bound (m, m/s) of the state vector's entries."""
 ALTITUDE_LIMIT = 100.0
 """Observed altitude is clipped to [0, ALTITUDE_LIMIT] m."""
 OBSTACLE_RANGE = 100.0
 """Observed obstacle offsets and sizes are clipped to +-OBSTACLE_RANGE m."""
-NEIGHBOUR_FIELDS = 4
-"""Per neighbour: relative position in the camera frame (3, m) and a mask (1)."""
-OBSTACLE_FIELDS = 7
-"""Per obstacle: relative centre in the camera frame (3, m), half extents (3, m), mask (1)."""
+
+_UNIT = (-1, 1)
+_FEATURE_BOUNDS = ((-5, 5), (-5, 5), (0, _inv_near), _UNIT, _UNIT)
+OWN_FIELDS = (
+    ObsField(
+        "features",
+        "measured x1, x2, x3, sin psi, cos psi (zeros when not detected), eqs. (6), (8)",
+        _FEATURE_BOUNDS,
+    ),
+    ObsField("detection", "detected flag, visible fraction of the target", ((0, 1), (0, 1))),
+    ObsField(
+        "velocity",
+        "own velocity in the camera frame [v_cx, v_cy, v_cz] (m/s)",
+        ((_speed(-1), _speed(1)),) * 3,
+    ),
+    ObsField("yaw_rate", "own omega_cy (rad/s)", ((_turn(-1), _turn(1)),)),
+    ObsField("heading", "sin yaw, cos yaw", (_UNIT, _UNIT)),
+    ObsField("altitude", "own z (m)", ((0, ALTITUDE_LIMIT),)),
+    ObsField(
+        "reference",
+        "x1*, x2*, x3*, sin psi*, cos psi* of this agent's reference s*",
+        _FEATURE_BOUNDS,
+    ),
+)
+"""The agent's own blocks, in order, each with its bounds."""
+NEIGHBOUR_FIELD = ObsField(
+    "neighbour",
+    "rel. position (camera frame), mask",
+    ((_comms(-1), _comms(1)),) * 3 + ((0, 1),),
+)
+"""Per neighbour (one of the K nearest received): relative position in the camera frame (3, m),
+mask (1)."""
+OBSTACLE_FIELD = ObsField(
+    "obstacle",
+    "rel. centre (camera frame), half extents, mask",
+    ((-OBSTACLE_RANGE, OBSTACLE_RANGE),) * 3 + ((0, OBSTACLE_RANGE),) * 3 + ((0, 1),),
+)
+"""Per obstacle (one of the K nearest): relative centre in the camera frame (3, m), half extents
+(3, m), mask (1)."""
+NEIGHBOUR_FIELDS = NEIGHBOUR_FIELD.size
+"""Entries per neighbour (4)."""
+OBSTACLE_FIELDS = OBSTACLE_FIELD.size
+"""Entries per obstacle (7)."""
+
+
+@dataclass
+class Measurements:
+    """What the sensors and the world's geometry report at one step (leading axis: UAV)."""
+
+    detections: Detections
+    distances: np.ndarray
+    """(n, n) inter-UAV distances (m)."""
+    received: np.ndarray
+    """(n, n) bool: UAV i received UAV j's position this step."""
+    contacts: dict[str, np.ndarray]
+    """``ground``, ``obstacle``, ``target``: (n,) bool PyBullet contacts."""
+    nearest_uav: np.ndarray
+    """(n,) distance to the nearest other alive UAV (inf if none)."""
+    obstacle_clearance: np.ndarray
+    """(n, m) distance from each UAV's sphere to each obstacle box (m)."""
+    nearest_obstacle: np.ndarray
+    """(n,) smallest obstacle clearance (inf without obstacles)."""
+    target_center: np.ndarray
+    target_heading: float
+    target_clearance: np.ndarray
+    """(n,) distance from each UAV's sphere to the car's oriented box (m)."""
+    occlusion_angles: np.ndarray
+    """(n, m) theta of eq. (38)."""
+    occlusion_candidates: np.ndarray
+    """(n, m) bool: obstacle in N_oi (39)."""
+
+
+@dataclass
+class Score:
+    """This step's reward terms and safety violations (n,) per UAV."""
+
+    tracking: np.ndarray
+    effort: np.ndarray
+    reward: np.ndarray
+    collided: np.ndarray
+    uav_too_close: np.ndarray
+    disconnected: bool
+    occluded: np.ndarray
 
 
 class UAVTrackEnv(ParallelEnv):
@@ -79,6 +190,12 @@ class UAVTrackEnv(ParallelEnv):
 
     **Arguments**: the fields of :class:`uavtrack_env.config.EnvConfig`; unknown names raise.
 
+    **Seams**: ``validate_actions(actions)`` runs step()'s checks and scaling without stepping
+    (u in SI units, clip flags); ``snapshot()`` returns the true state as a
+    :class:`~uavtrack_env.sensors.UAVSnapshot` (copies); ``layout`` holds the episode's obstacles
+    and references; ``world`` the PyBullet bodies. ``step`` runs simulate -> sense -> score ->
+    observe, each its own method; the random stream is drawn by the detector, then the comms.
+
     **Version history**: v0: initial release.
     """
 
@@ -98,7 +215,7 @@ class UAVTrackEnv(ParallelEnv):
         self._index = {a: i for i, a in enumerate(self.possible_agents)}
         self._scale = cfg.limits.scale
         self.n_obs = (
-            sum(f[1] for f in OWN_FIELDS)
+            sum(f.size for f in OWN_FIELDS)
             + cfg.n_neighbours * NEIGHBOUR_FIELDS
             + cfg.n_obstacles_obs * OBSTACLE_FIELDS
         )
@@ -131,57 +248,35 @@ class UAVTrackEnv(ParallelEnv):
             raise KeyError(f"unknown agent {agent!r}; agents are {self.possible_agents}")
         return agent
 
-    def _observation_bounds(self) -> tuple[np.ndarray, np.ndarray]:
-        """Finite bounds per observation entry; values beyond them are clipped (documented)."""
+    def _observation_fields(self) -> list[ObsField]:
         cfg = self.config
-        v, w, r_c = 2.0 * cfg.limits.v_max, 2.0 * cfg.limits.omega_max, cfg.comms.r_c
-        own_hi = [
-            5,
-            5,
-            1 / cfg.camera.near,
-            1,
-            1,
-            1,
-            1,
-            v,
-            v,
-            v,
-            w,
-            1,
-            1,
-            ALTITUDE_LIMIT,
-            5,
-            5,
-            1 / cfg.camera.near,
-            1,
-            1,
+        return [
+            *OWN_FIELDS,
+            *[NEIGHBOUR_FIELD] * cfg.n_neighbours,
+            *[OBSTACLE_FIELD] * cfg.n_obstacles_obs,
         ]
-        own_lo = [-5, -5, 0, -1, -1, 0, 0, -v, -v, -v, -w, -1, -1, 0, -5, -5, 0, -1, -1]
-        nb_hi, nb_lo = (
-            [r_c, r_c, r_c, 1] * cfg.n_neighbours,
-            [-r_c, -r_c, -r_c, 0] * cfg.n_neighbours,
-        )
-        d = OBSTACLE_RANGE
-        ob_hi = [d, d, d, d, d, d, 1] * cfg.n_obstacles_obs
-        ob_lo = [-d, -d, -d, 0, 0, 0, 0] * cfg.n_obstacles_obs
-        low = np.array(own_lo + nb_lo + ob_lo, np.float32)
-        high = np.array(own_hi + nb_hi + ob_hi, np.float32)
-        assert low.shape == (self.n_obs,)
-        return low, high
+
+    def _observation_bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """Finite bounds per observation entry, from the field table; values beyond them are
+        clipped (documented)."""
+        low: list[float] = []
+        high: list[float] = []
+        for f in self._observation_fields():
+            lo, hi = f.low_high(self.config)
+            low += lo
+            high += hi
+        assert len(low) == self.n_obs
+        return np.array(low, np.float32), np.array(high, np.float32)
 
     def observation_fields(self) -> list[tuple[str, int, str]]:
         """(name, size, meaning) of each block of the observation vector, in order."""
         cfg = self.config
+        own = [(f.name, f.size, f.meaning) for f in OWN_FIELDS]
+        nb, ob = NEIGHBOUR_FIELD, OBSTACLE_FIELD
         return [
-            *OWN_FIELDS,
-            *[
-                (f"neighbour_{k}", NEIGHBOUR_FIELDS, "rel. position (camera frame), mask")
-                for k in range(cfg.n_neighbours)
-            ],
-            *[
-                (f"obstacle_{k}", OBSTACLE_FIELDS, "rel. centre (camera frame), half extents, mask")
-                for k in range(cfg.n_obstacles_obs)
-            ],
+            *own,
+            *[(f"{nb.name}_{k}", nb.size, nb.meaning) for k in range(cfg.n_neighbours)],
+            *[(f"{ob.name}_{k}", ob.size, ob.meaning) for k in range(cfg.n_obstacles_obs)],
         ]
 
     # ------------------------------------------------------------------ reset
@@ -206,38 +301,34 @@ class UAVTrackEnv(ParallelEnv):
         self._clip_count = np.zeros(n, int)
         self.last_action = np.zeros((n, 4))
         self.world.set_poses(self.position, self.yaw, self.alive, self.target.center(), 0.0)
-        obs, _, _, infos = self._sense(np.zeros((n, 4)), np.zeros(n, bool))
-        return obs, infos
+        u, clipped = np.zeros((n, 4)), np.zeros(n, bool)
+        m = self._sense()
+        score = self._score(m, u)
+        return self._observe(m), self._infos(m, score, u, clipped)
 
     # ------------------------------------------------------------------- step
     def step(self, actions: dict[str, Any]):
-        u, clipped = self._validate(actions)
-        self._advance_world(u)
-        obs, rewards, collided, infos = self._sense(u, clipped)
-        return (obs, rewards, *self._episode_end(collided), infos)
+        """simulate -> sense -> score -> observe; then the episode's end."""
+        u, clipped = self.validate_actions(actions)
+        self._simulate(u, clipped)
+        m = self._sense()
+        score = self._score(m, u)
+        obs = self._observe(m)
+        rewards = {a: float(score.reward[self._index[a]]) for a in self.agents}
+        infos = self._infos(m, score, u, clipped)
+        terminations, truncations = self._episode_end(score.collided)
+        return obs, rewards, terminations, truncations, infos
 
-    def _validate(self, actions: dict[str, Any]) -> tuple[np.ndarray, np.ndarray]:
-        """Check every action before anything changes; return u (n, 4) in SI units, clip flags."""
-        if self.np_random is None:
-            raise RuntimeError("step() called before reset(); call env.reset(seed=...) first")
-        if not self.agents:
-            raise RuntimeError("the episode is over (no live agents); call env.reset()")
-        if not isinstance(actions, dict):
-            raise ValueError(
-                f"actions must be a dict agent -> action, got {type(actions).__name__}"
-            )
-        for agent in actions:
-            if agent not in self._index:
-                raise KeyError(f"action for unknown agent {agent!r}; agents are {self.agents}")
-            if agent not in self.agents:
-                raise KeyError(
-                    f"action for finished agent {agent!r}; live agents are {self.agents}"
-                )
-        missing = [a for a in self.agents if a not in actions]
-        if missing:
-            raise KeyError(f"no action for live agent(s) {missing}; every live agent must act")
-        n = self.config.n_uavs
-        a = np.zeros((n, 4))
+    def validate_actions(self, actions: dict[str, Any]) -> tuple[np.ndarray, np.ndarray]:
+        """Check a step's actions without changing anything.
+
+        Returns u (n, 4) float64 in SI units (clipped to Table II; zero rows for finished
+        agents) and clipped (n,) bool (the agent's action left [-1, 1]). Raises RuntimeError
+        before reset or after the episode's end; KeyError for unknown, finished or missing
+        agents; ValueError for a non-dict, wrong shapes or non-finite values.
+        """
+        self._check_can_act(actions)
+        a = np.zeros((self.config.n_uavs, 4))
         for agent, act in actions.items():
             try:
                 arr = np.asarray(act, dtype=np.float64)
@@ -256,7 +347,31 @@ class UAVTrackEnv(ParallelEnv):
         clipped = np.any(np.abs(a) > 1.0, axis=1)
         return np.clip(a, -1.0, 1.0) * self._scale, clipped
 
-    def _advance_world(self, u: np.ndarray) -> None:
+    def _check_can_act(self, actions: Any) -> None:
+        """The episode is running and ``actions`` names exactly the live agents."""
+        if self.np_random is None:
+            raise RuntimeError("step() called before reset(); call env.reset(seed=...) first")
+        if not self.agents:
+            raise RuntimeError("the episode is over (no live agents); call env.reset()")
+        if not isinstance(actions, dict):
+            raise ValueError(
+                f"actions must be a dict agent -> action, got {type(actions).__name__}"
+            )
+        for agent in actions:
+            if agent not in self._index:
+                raise KeyError(f"action for unknown agent {agent!r}; agents are {self.agents}")
+            if agent not in self.agents:
+                raise KeyError(
+                    f"action for finished agent {agent!r}; live agents are {self.agents}"
+                )
+        missing = [a for a in self.agents if a not in actions]
+        if missing:
+            raise KeyError(f"no action for live agent(s) {missing}; every live agent must act")
+
+    # --------------------------------------------------------------- simulate
+    def _simulate(self, u: np.ndarray, clipped: np.ndarray) -> None:
+        """Apply u (zero for finished UAVs) for one step; move the car; pose the bodies."""
+        self._clip_count += clipped
         u = np.where(self.alive[:, None], u, 0.0)
         self.position, self.yaw, self.velocity, self.yaw_rate = integrate(
             self.position, self.yaw, self.velocity, self.yaw_rate, u, self.config.dynamics, DT
@@ -268,9 +383,12 @@ class UAVTrackEnv(ParallelEnv):
         self.last_action = u
         self.num_cycles += 1
 
-    # ----------------------------------------------------------- sense & score
-    def _sense(self, u: np.ndarray, clipped: np.ndarray):
-        """Sensors -> observation, reward, cost and info for the live agents."""
+    # ------------------------------------------------------------------ sense
+    def _sense(self) -> Measurements:
+        """Detector, comms, contacts and distances for this step.
+
+        The random stream is drawn in a fixed order: the detector, then the comms.
+        """
         cfg, rng = self.config, self.np_random
         n = cfg.n_uavs
         tgt_c, heading = self.target.center(), self.target.heading
@@ -286,109 +404,27 @@ class UAVTrackEnv(ParallelEnv):
         dist[~self.alive, :] = np.inf
         dist[:, ~self.alive] = np.inf
         np.fill_diagonal(dist, np.inf)
-        nearest_uav = dist.min(axis=1)
         clearance = (
             point_box_distance(
                 self.position, self.layout.obstacle_centers, self.layout.obstacle_half_extents
             )
             - cfg.uav_radius
         )
-        nearest_obstacle = clearance.min(axis=1) if clearance.shape[1] else np.full(n, np.inf)
-        collided = (
-            hits["ground"] | hits["obstacle"] | hits["target"] | (nearest_uav < cfg.cbf.r_s)
-        ) & self.alive
-        disconnected = not connected(pair, self.alive, cfg.cbf.r_c)
-        occluded = det.blocked_fraction > 1.0 - cfg.detector.min_visible_fraction
-
-        tracking = tracking_term(
-            det.true_features, self.references, det.in_front, det.detected, cfg.reward
-        )
-        effort = effort_term(u, cfg.reward)
-        rew = reward(tracking + effort, collided, cfg.reward)
-        self._clip_count += clipped
-        obs_all = self._observations(det, received, clearance, pair)
         theta, in_noi = self._occlusion_angles(tgt_c)
-        target_clear = self._target_clearance(tgt_c, heading)
-
-        obs, rewards, infos = {}, {}, {}
-        for agent in self.agents:
-            i = self._index[agent]
-            violations = {
-                "collision": bool(collided[i]),
-                "disconnection": disconnected,
-                "occlusion": bool(occluded[i]),
-            }
-            obs[agent] = obs_all[i]
-            rewards[agent] = float(rew[i])
-            infos[agent] = {
-                "cost": float(sum(violations.values())),
-                "violations": violations,
-                "collision_with": {
-                    "uav": bool(nearest_uav[i] < cfg.cbf.r_s),
-                    **{k: bool(v[i]) for k, v in hits.items()},
-                },
-                "reward_tracking": -float(tracking[i]),
-                "reward_effort": -float(effort[i]),
-                "action_clipped": bool(clipped[i]),
-                "n_clipped_actions": int(self._clip_count[i]),
-                "measurement": self._measurement(det, i),
-                "own": {
-                    "position": self.position[i].copy(),
-                    "yaw": float(self.yaw[i]),
-                    "velocity": self.velocity[i].copy(),
-                    "yaw_rate": float(self.yaw_rate[i]),
-                    "applied_u": u[i].copy(),
-                },
-                "neighbours": {
-                    self.possible_agents[j]: self.position[j].copy()
-                    for j in np.flatnonzero(received[i])
-                },
-                "reference": self.references[i].copy(),
-                "truth": self._truth(
-                    i, det, nearest_uav, nearest_obstacle, target_clear, theta, in_noi
-                ),
-            }
-        return obs, rewards, collided, infos
-
-    @staticmethod
-    def _measurement(det: Detections, i: int) -> dict:
-        """The detector's report for UAV i; u, v, depth, psi are None when not detected."""
-        ok = bool(det.detected[i])
-        return {
-            "detected": ok,
-            "u": float(det.u[i]) if ok else None,
-            "v": float(det.v[i]) if ok else None,
-            "depth": float(det.depth[i]) if ok else None,
-            "psi": float(det.psi[i]) if ok else None,
-            "visible_fraction": float(det.visible_fraction[i]),
-            "truncated_u": ok and bool(det.truncated[i, 0]),
-            "truncated_v": ok and bool(det.truncated[i, 1]),
-        }
-
-    def _truth(
-        self, i, det: Detections, nearest_uav, nearest_obstacle, target_clear, theta, in_noi
-    ) -> dict:
-        cam = self.config.camera
-        s, ref = det.true_features[i], self.references[i]
-        ref_px = np.array([cam.fx * ref[0] + cam.cu, cam.fy * ref[1] + cam.cv])
-        center_error = np.array([cam.fx * s[0] + cam.cu, cam.fy * s[1] + cam.cv]) - ref_px
-        return {
-            "features": s.copy(),
-            # Capped at the image size: a car behind the camera projects arbitrarily far.
-            "pixel_error": np.clip(det.box_center[i] - ref_px, -self._image_size, self._image_size),
-            "center_pixel_error": center_error,
-            "depth_error": float(1.0 / s[2] - 1.0 / ref[2]) if det.in_front[i] else None,
-            "target_position": self.target.center(),
-            "target_velocity": self.target.velocity(),
-            "target_acceleration": self.target.acceleration(),
-            "nearest_uav_distance": float(nearest_uav[i]),
-            "nearest_obstacle_clearance": float(nearest_obstacle[i]),
-            "target_clearance": float(target_clear[i]),
-            "occlusion_angles": theta[i].copy(),
-            "occlusion_candidates": in_noi[i].copy(),
-            "min_occlusion_angle": float(theta[i][in_noi[i]].min()) if in_noi[i].any() else np.pi,
-            "blocked_fraction": float(det.blocked_fraction[i]),
-        }
+        return Measurements(
+            detections=det,
+            distances=pair,
+            received=received,
+            contacts=hits,
+            nearest_uav=dist.min(axis=1),
+            obstacle_clearance=clearance,
+            nearest_obstacle=clearance.min(axis=1) if clearance.shape[1] else np.full(n, np.inf),
+            target_center=tgt_c,
+            target_heading=heading,
+            target_clearance=self._target_clearance(tgt_c, heading),
+            occlusion_angles=theta,
+            occlusion_candidates=in_noi,
+        )
 
     def _occlusion_angles(self, target_center: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """theta (n, m) of eq. (38) with n^i = target - p^i (36), and membership of N_oi (39)."""
@@ -408,14 +444,41 @@ class UAVTrackEnv(ParallelEnv):
         d = point_box_distance(local, np.zeros((1, 3)), CAR_HALF_EXTENTS[None])[:, 0]
         return d - self.config.uav_radius
 
-    def _observations(
-        self, det: Detections, received: np.ndarray, clearance: np.ndarray, pair: np.ndarray
-    ) -> np.ndarray:
-        """All agents' observation vectors (n, n_obs), float32."""
-        cfg = self.config
-        cam = cfg.camera
-        n = cfg.n_uavs
-        ok = det.detected
+    # ------------------------------------------------------------------ score
+    def _score(self, m: Measurements, u: np.ndarray) -> Score:
+        """Reward terms (from the true features and u) and the three violations."""
+        cfg, det, hits = self.config, m.detections, m.contacts
+        too_close = m.nearest_uav < cfg.violations.r_s
+        collided = (hits["ground"] | hits["obstacle"] | hits["target"] | too_close) & self.alive
+        tracking = tracking_term(
+            det.true_features, self.references, det.in_front, det.detected, cfg.reward
+        )
+        effort = effort_term(u, cfg.reward)
+        return Score(
+            tracking=tracking,
+            effort=effort,
+            reward=reward(tracking + effort, collided, cfg.reward),
+            collided=collided,
+            uav_too_close=too_close,
+            disconnected=not connected(m.distances, self.alive, cfg.comms.r_c),
+            occluded=det.blocked_fraction > 1.0 - cfg.detector.min_visible_fraction,
+        )
+
+    # ---------------------------------------------------------------- observe
+    def _observe(self, m: Measurements) -> dict[str, np.ndarray]:
+        """Each live agent's observation vector (float32, clipped to the observation space)."""
+        blocks = [self._own_block(m.detections)]
+        if self.config.n_neighbours:
+            blocks.append(self._neighbour_block(m.received, m.distances))
+        if self.config.n_obstacles_obs:
+            blocks.append(self._obstacle_block(m.obstacle_clearance))
+        obs = np.clip(np.concatenate(blocks, 1), self._obs_low, self._obs_high)
+        obs = obs.astype(np.float32)
+        return {a: obs[self._index[a]] for a in self.agents}
+
+    def _own_block(self, det: Detections) -> np.ndarray:
+        """OWN_FIELDS for all UAVs (n, 19): measured features, detection, own motion, s*."""
+        cam = self.config.camera
         with np.errstate(invalid="ignore", divide="ignore"):
             feats = np.column_stack(
                 [
@@ -426,12 +489,12 @@ class UAVTrackEnv(ParallelEnv):
                     np.cos(det.psi),
                 ]
             )
-        feats[~ok] = 0.0
+        feats[~det.detected] = 0.0
         ref = self.references
-        own = np.column_stack(
+        return np.column_stack(
             [
                 feats,
-                ok,
+                det.detected,
                 det.visible_fraction,
                 world_to_cam_vec(self.velocity, self.yaw),
                 -self.yaw_rate,
@@ -443,36 +506,121 @@ class UAVTrackEnv(ParallelEnv):
                 np.cos(ref[:, 3]),
             ]
         )
-        blocks = [own]
-        k = cfg.n_neighbours
-        if k:
-            d = np.where(received, pair, np.inf)
-            order = np.argsort(d, axis=1, kind="stable")[:, :k]
-            rel = self.position[order] - self.position[:, None]
-            mask = np.isfinite(np.take_along_axis(d, order, 1))
-            rel = world_to_cam_vec(rel, self.yaw[:, None]) * mask[..., None]
-            nb = np.concatenate([rel, mask[..., None]], -1)
-            if nb.shape[1] < k:
-                nb = np.concatenate([nb, np.zeros((n, k - nb.shape[1], NEIGHBOUR_FIELDS))], 1)
-            blocks.append(nb.reshape(n, -1))
-        k = cfg.n_obstacles_obs
-        if k:
-            m = clearance.shape[1]
-            order = np.argsort(clearance, axis=1, kind="stable")[:, :k]
-            rel = self.layout.obstacle_centers[order] - self.position[:, None]
-            ob = np.concatenate(
-                [
-                    world_to_cam_vec(rel, self.yaw[:, None]),
-                    self.layout.obstacle_half_extents[order],
-                    np.ones(order.shape + (1,)),
-                ],
-                -1,
-            )
-            if m < k:
-                ob = np.concatenate([ob, np.zeros((n, k - m, OBSTACLE_FIELDS))], 1)
-            blocks.append(ob.reshape(n, -1))
-        return np.clip(np.concatenate(blocks, 1), self._obs_low, self._obs_high).astype(np.float32)
 
+    def _neighbour_block(self, received: np.ndarray, pair: np.ndarray) -> np.ndarray:
+        """The K nearest received neighbours (n, K * 4), camera frame, zero-padded."""
+        n, k = self.config.n_uavs, self.config.n_neighbours
+        d = np.where(received, pair, np.inf)
+        order = np.argsort(d, axis=1, kind="stable")[:, :k]
+        rel = self.position[order] - self.position[:, None]
+        mask = np.isfinite(np.take_along_axis(d, order, 1))
+        rel = world_to_cam_vec(rel, self.yaw[:, None]) * mask[..., None]
+        nb = np.concatenate([rel, mask[..., None]], -1)
+        if nb.shape[1] < k:
+            nb = np.concatenate([nb, np.zeros((n, k - nb.shape[1], NEIGHBOUR_FIELDS))], 1)
+        return nb.reshape(n, -1)
+
+    def _obstacle_block(self, clearance: np.ndarray) -> np.ndarray:
+        """The K nearest obstacles (n, K * 7), camera frame, zero-padded."""
+        n, k = self.config.n_uavs, self.config.n_obstacles_obs
+        m = clearance.shape[1]
+        order = np.argsort(clearance, axis=1, kind="stable")[:, :k]
+        rel = self.layout.obstacle_centers[order] - self.position[:, None]
+        ob = np.concatenate(
+            [
+                world_to_cam_vec(rel, self.yaw[:, None]),
+                self.layout.obstacle_half_extents[order],
+                np.ones(order.shape + (1,)),
+            ],
+            -1,
+        )
+        if m < k:
+            ob = np.concatenate([ob, np.zeros((n, k - m, OBSTACLE_FIELDS))], 1)
+        return ob.reshape(n, -1)
+
+    # ------------------------------------------------------------------ infos
+    def _infos(
+        self, m: Measurements, score: Score, u: np.ndarray, clipped: np.ndarray
+    ) -> dict[str, dict]:
+        """Each live agent's info dict: cost, violations, reward terms, measurement, truth."""
+        return {a: self._agent_info(self._index[a], m, score, u, clipped) for a in self.agents}
+
+    def _agent_info(
+        self, i: int, m: Measurements, score: Score, u: np.ndarray, clipped: np.ndarray
+    ) -> dict:
+        violations = {
+            "collision": bool(score.collided[i]),
+            "disconnection": score.disconnected,
+            "occlusion": bool(score.occluded[i]),
+        }
+        return {
+            "cost": float(sum(violations.values())),
+            "violations": violations,
+            "collision_with": {
+                "uav": bool(score.uav_too_close[i]),
+                **{k: bool(v[i]) for k, v in m.contacts.items()},
+            },
+            "reward_tracking": -float(score.tracking[i]),
+            "reward_effort": -float(score.effort[i]),
+            "action_clipped": bool(clipped[i]),
+            "n_clipped_actions": int(self._clip_count[i]),
+            "measurement": self._measurement(m.detections, i),
+            "own": {
+                "position": self.position[i].copy(),
+                "yaw": float(self.yaw[i]),
+                "velocity": self.velocity[i].copy(),
+                "yaw_rate": float(self.yaw_rate[i]),
+                "applied_u": u[i].copy(),
+            },
+            "neighbours": {
+                self.possible_agents[j]: self.position[j].copy()
+                for j in np.flatnonzero(m.received[i])
+            },
+            "reference": self.references[i].copy(),
+            "truth": self._truth(i, m),
+        }
+
+    @staticmethod
+    def _measurement(det: Detections, i: int) -> dict:
+        """The detector's report for UAV i; u, v, depth, psi are None when not detected."""
+        ok = bool(det.detected[i])
+        return {
+            "detected": ok,
+            "u": float(det.u[i]) if ok else None,
+            "v": float(det.v[i]) if ok else None,
+            "depth": float(det.depth[i]) if ok else None,
+            "psi": float(det.psi[i]) if ok else None,
+            "visible_fraction": float(det.visible_fraction[i]),
+            "truncated_u": ok and bool(det.truncated[i, 0]),
+            "truncated_v": ok and bool(det.truncated[i, 1]),
+        }
+
+    def _truth(self, i: int, m: Measurements) -> dict:
+        """Ground truth for UAV i: true features and errors, the car's motion, clearances."""
+        cam, det = self.config.camera, m.detections
+        s, ref = det.true_features[i], self.references[i]
+        ref_px = np.array([cam.fx * ref[0] + cam.cu, cam.fy * ref[1] + cam.cv])
+        center_error = np.array([cam.fx * s[0] + cam.cu, cam.fy * s[1] + cam.cv]) - ref_px
+        theta, in_noi = m.occlusion_angles[i], m.occlusion_candidates[i]
+        return {
+            "features": s.copy(),
+            # Capped at the image size: a car behind the camera projects arbitrarily far.
+            "pixel_error": np.clip(det.box_center[i] - ref_px, -self._image_size, self._image_size),
+            "center_pixel_error": center_error,
+            "depth_error": float(1.0 / s[2] - 1.0 / ref[2]) if det.in_front[i] else None,
+            "target_position": self.target.center(),
+            "target_velocity": self.target.velocity(),
+            "target_acceleration": self.target.acceleration(),
+            "nearest_uav_distance": float(m.nearest_uav[i]),
+            "nearest_obstacle_clearance": float(m.nearest_obstacle[i]),
+            "target_clearance": float(m.target_clearance[i]),
+            "occlusion_angles": theta.copy(),
+            "occlusion_candidates": in_noi.copy(),
+            "min_occlusion_angle": float(theta[in_noi].min()) if in_noi.any() else np.pi,
+            "blocked_fraction": float(det.blocked_fraction[i]),
+        }
+
+    # ------------------------------------------------------------ episode end
     def _episode_end(self, collided: np.ndarray):
         cfg = self.config
         if cfg.terminate_on_collision == "all" and collided.any():
@@ -489,6 +637,22 @@ class UAVTrackEnv(ParallelEnv):
         return terminations, truncations
 
     # ------------------------------------------------------------ extras
+    def snapshot(self) -> UAVSnapshot:
+        """The true state of the UAVs and the car, and the last detection (copies, not views)."""
+        if self.np_random is None:
+            raise RuntimeError("snapshot() called before reset()")
+        det = self.last_detection
+        return UAVSnapshot(
+            positions=self.position.copy(),
+            yaws=self.yaw.copy(),
+            velocities=self.velocity.copy(),
+            yaw_rates=self.yaw_rate.copy(),
+            alive=self.alive.copy(),
+            target_center=self.target.center().copy(),
+            target_heading=float(self.target.heading),
+            detection=None if det is None else det.copy(),
+        )
+
     def state(self) -> np.ndarray:
         """Global state for centralised critics: per UAV [p (3), sin/cos yaw, v (3), alive], then
         the target [p (3), sin/cos heading, v (3)]."""
@@ -509,10 +673,11 @@ class UAVTrackEnv(ParallelEnv):
             return None
         if self.np_random is None:
             raise RuntimeError("render() called before reset()")
+        snap = self.snapshot()
         if self.render_mode == "human":
-            rendering.follow_target(self)
+            rendering.follow_target(self.world, snap)
             return None
-        return rendering.rgb_frame(self)
+        return rendering.rgb_frame(self.world, self.config, self.layout, snap)
 
     def close(self) -> None:
         self.world.close()

@@ -1,18 +1,37 @@
-"""What one UAV knows, read from its own ``info``: target estimate and the shield's context.
+"""One UAV's onboard stack: what it knows (`OnboardAgent.observe`) and its CBF-QP (`certify`).
 
-Shared by the expert and the RL shield so that both see exactly a real UAV's information: the
-detector's report, its own GPS/IMU state, its neighbours' messages and the known obstacle map,
-never ``info["truth"]``.
+`ExpertPolicy` is this stack plus the planner (NMPC, viewpoint); `CBFShield` is this stack alone
+around any policy. Both therefore see exactly a real UAV's information: the detector's report, its
+own GPS/IMU state, its neighbours' messages and the known obstacle map, never ``info["truth"]``.
+
+The car is known only through the UKF. Its row (a hard row keeping the UAV out of the car) uses a
+heading-free box (horizontal half extent = the car's half diagonal) inflated by
+``target_margin`` plus ``target_sigmas`` standard deviations of the estimated position, capped at
+``target_margin_max`` (`ShieldMargins`).
 """
 
 from __future__ import annotations
 
+import dataclasses
+import math
+from dataclasses import dataclass
+
 import numpy as np
 
-from .config import DT, CameraConfig
+from .config import DT, CameraConfig, EnvConfig
 from .estimation import Estimate, Measurement, TargetEstimator, UKFConfig
 from .geometry import world_to_cam_vec
-from .safety import SafetyContext
+from .presets import ExpertConfig
+from .safety import (
+    CBFRows,
+    SafetyContext,
+    SafetyFilter,
+    ShieldMargins,
+    ShieldReport,
+    shield_cbf,
+)
+from .scenarios import Layout
+from .target import CAR_HALF_EXTENTS
 
 
 class OnboardTracker:
@@ -44,52 +63,246 @@ class OnboardTracker:
         return self.estimate
 
 
-class NeighbourVelocities:
-    """Neighbours' global velocities, differenced from their consecutive position messages.
+@dataclass(frozen=True)
+class NeighbourBelief:
+    """What one UAV believes of its team-mates now (k known team-mates, in team order)."""
 
-    A UAV hears only positions (section III); second-order CBF rows (`ShieldOptions.lag_tau`)
-    also need the neighbours' velocities. Call once per step with that step's messages; a
-    neighbour not heard at the previous step counts as still (exact at a reset, where all start
-    at rest). With the env's forward-Euler step the difference is the velocity exactly.
+    names: tuple[str, ...]
+    positions: np.ndarray
+    """(k, 3) positions: the last message, propagated at its velocity under the lag model."""
+    velocities: np.ndarray
+    """(k, 3) velocities differenced from consecutive messages (kept while messages are lost)."""
+    position_radius: np.ndarray
+    """(k,) the true position lies within this distance (m) of ``positions``."""
+    velocity_radius: np.ndarray
+    """(k,) the true velocity lies within this distance (m/s) of ``velocities``."""
+    ages: np.ndarray
+    """(k,) control steps since each team-mate's last message (0: heard this step)."""
+
+
+class NeighbourTable:
+    """Each team-mate's last message, its age and a reachable-set bound on where it is now.
+
+    A UAV hears positions only (section III), and a message may be lost. A team-mate stays
+    known after a lost message: it is at its last message's position (propagated at its last
+    differenced velocity under the lag model) within a radius that grows with the message's age
+    t: ``speed_bound t`` (every UAV flies at ``||V|| <= alpha_v``, the QP's speed bound (47)),
+    and under the lag model ``accel_bound t (t + dt) / 2`` around the propagated position
+    (``||v-dot|| <= a_max``, forward Euler) if that is smaller. Velocities are differenced from
+    consecutive messages (exact with the env's forward-Euler step; over a gap of g steps the mean
+    velocity, within ``a_max (g - 1) dt / 2`` of the last one). At reset every team-mate within
+    ``r_c`` is known at its start position, at rest (the formation is known before take-off); a
+    team-mate silent for ``timeout`` steps is forgotten (it collided, was parked or left R_c).
     """
 
-    def __init__(self, dt: float = DT) -> None:
-        self.dt = dt
-        self._last: dict[str, np.ndarray] = {}
+    def __init__(
+        self,
+        speed_bound: float,
+        accel_bound: float | None = None,
+        timeout: int = 40,
+        dt: float = DT,
+    ) -> None:
+        self.speed_bound, self.accel_bound = float(speed_bound), accel_bound
+        self.timeout, self.dt = int(timeout), dt
+        self._names: list[str] = []
+        self._index: dict[str, int] = {}
+        self._pos = np.zeros((0, 3))
+        self._vel = np.zeros((0, 3))
+        self._vel_err = np.zeros(0)
+        self._age = np.zeros(0, int)
+        self._known = np.zeros(0, bool)
 
-    def reset(self) -> None:
-        self._last = {}
+    def reset(self, names: list[str], positions: np.ndarray, own: str, r_c: float) -> None:
+        """A new episode: the team ``names`` at ``positions`` (n, 3); ``own`` is this UAV."""
+        positions = np.asarray(positions, float).reshape(-1, 3)
+        me = names.index(own)
+        keep = [k for k in range(len(names)) if k != me]
+        self._names = [names[k] for k in keep]
+        self._index = {a: k for k, a in enumerate(self._names)}
+        self._pos = positions[keep].copy()
+        self._vel = np.zeros_like(self._pos)
+        self._vel_err = np.zeros(len(keep))
+        self._age = np.zeros(len(keep), int)
+        self._known = np.linalg.norm(self._pos - positions[me], axis=1) <= r_c
 
-    def __call__(self, messages: dict) -> np.ndarray:
-        """(k, 3) velocities of the k neighbours in ``messages`` (name -> position), in order."""
-        out = np.zeros((len(messages), 3))
-        for k, (name, pos) in enumerate(messages.items()):
-            before = self._last.get(name)
-            if before is not None:
-                out[k] = (np.asarray(pos) - before) / self.dt
-        self._last = {name: np.array(pos, float) for name, pos in messages.items()}
-        return out
+    def update(self, messages: dict[str, np.ndarray]) -> None:
+        """Take this step's messages (team-mate -> position); the others age by one step."""
+        self._age += 1
+        for name, pos in messages.items():
+            k = self._index.get(name)
+            if k is None:
+                continue
+            pos = np.asarray(pos, float)
+            if self._known[k]:
+                gap = int(self._age[k])
+                self._vel[k] = (pos - self._pos[k]) / (gap * self.dt)
+                self._vel_err[k] = 0.5 * (self.accel_bound or 0.0) * (gap - 1) * self.dt
+            else:  # first heard: its velocity is unknown within the speed bound
+                self._vel[k] = 0.0
+                self._vel_err[k] = self.speed_bound
+            self._pos[k] = pos
+            self._age[k] = 0
+            self._known[k] = True
+        self._known &= self._age < self.timeout
+
+    def belief(self) -> NeighbourBelief:
+        """The known team-mates now."""
+        k = np.flatnonzero(self._known)
+        age = self._age[k]
+        t = age * self.dt
+        vel = self._vel[k]
+        radius = self.speed_bound * t
+        vel_radius = np.zeros(len(k))
+        pos = self._pos[k]
+        if self.accel_bound is not None and len(k):
+            err = self._vel_err[k]
+            speed = np.linalg.norm(vel, axis=1)
+            # forward Euler, p(k+1) = p(k) + v(k+1) dt: the drift is a sum, not an integral
+            propagated = 0.5 * self.accel_bound * t * (t + self.dt) + err * t
+            radius = np.minimum((self.speed_bound + speed) * t, propagated)
+            pos = pos + vel * t[:, None]
+            vel_radius = np.minimum(err + self.accel_bound * t, 2.0 * self.speed_bound)
+        return NeighbourBelief(tuple(self._names[i] for i in k), pos, vel, radius, vel_radius, age)
 
 
-def safety_context(
-    info: dict,
-    estimate: Estimate | None,
-    obstacle_centers: np.ndarray,
-    obstacle_half_extents: np.ndarray,
-    neighbour_velocities: np.ndarray | None = None,
-) -> SafetyContext:
-    """The CBF-QP's view for one UAV: own pose and velocity, received positions (and, for
-    second-order rows, the neighbours' velocities), obstacles, target estimate."""
-    own = info["own"]
-    nb = info["neighbours"]
-    return SafetyContext(
-        position=own["position"],
-        yaw=own["yaw"],
-        velocity=own["velocity"],
-        neighbours=np.array(list(nb.values()), float).reshape(-1, 3),
-        neighbour_velocities=neighbour_velocities,
-        obstacle_centers=obstacle_centers,
-        obstacle_half_extents=obstacle_half_extents,
-        target_position=None if estimate is None else estimate.target_position,
-        target_velocity=None if estimate is None else estimate.target_velocity,
-    )
+class OnboardAgent:
+    """One UAV's onboard stack (UKF, team-mates' messages, known map, CBF-QP (47)).
+
+    Call `reset` with each new layout (the one place a new map arrives), then `observe` with the
+    agent's ``info`` after every env reset/step; `rows` and `certify` use the latest observation.
+    R_s and R_c come from the world (`EnvConfig.violations.r_s`, `EnvConfig.comms.r_c`) with the
+    config's margins; under the env's 'lag' dynamics and ``lag_aware`` the rows are second order
+    (`ShieldOptions.lag_tau` = ``dynamics.tau``).
+    """
+
+    def __init__(self, name: str, index: int, env_config: EnvConfig, config: ExpertConfig) -> None:
+        self.name, self.index, self.config = name, index, config
+        margins = config.margins
+        cbf = config.cbf.resolve(env_config.violations.r_s, env_config.comms.r_c)
+        for what, level in (("obstacle_clearance", cbf.obstacle_clearance), ("z_min", cbf.z_min)):
+            if level - env_config.uav_radius < margins.surface_gap:
+                raise ValueError(
+                    f"cbf.{what} = {level} m leaves less than margins.surface_gap = "
+                    f"{margins.surface_gap} m around the UAV's sphere (uav_radius "
+                    f"{env_config.uav_radius} m)"
+                )
+        self.cbf = shield_cbf(cbf, margins)
+        lag = config.lag_aware and env_config.dynamics.model == "lag"
+        lag_tau = env_config.dynamics.tau if lag else 0.0
+        options = dataclasses.replace(config.shield, lag_tau=lag_tau)
+        self.filter = SafetyFilter(
+            self.cbf, env_config.limits, solver=config.qp_solver, **dataclasses.asdict(options)
+        )
+        self.tracker = OnboardTracker(env_config.camera, config.ukf)
+        self._lag = lag
+        self.neighbours = NeighbourTable(
+            speed_bound=self.cbf.alpha_v,
+            accel_bound=env_config.dynamics.a_max if env_config.dynamics.model == "lag" else None,
+            timeout=max(1, round(margins.message_timeout / DT)),
+        )
+        self._r_c = env_config.comms.r_c
+        self._ids: dict[str, int] = {}
+        self.obstacle_centers = np.zeros((0, 3))
+        self.obstacle_half_extents = np.zeros((0, 3))
+        self.info: dict | None = None
+        self._context: SafetyContext | None = None
+        self._rows: CBFRows | None = None
+
+    @property
+    def estimate(self) -> Estimate | None:
+        """The UKF's target estimate (None until the car was first detected)."""
+        return self.tracker.estimate
+
+    def reset(self, layout: Layout, agents: list[str]) -> None:
+        """A new episode on ``layout`` (its known obstacle map); ``agents`` names the team in
+        index order. Forgets the estimate and the neighbours' histories."""
+        self.obstacle_centers = np.asarray(layout.obstacle_centers, float).reshape(-1, 3)
+        self.obstacle_half_extents = np.asarray(layout.obstacle_half_extents, float).reshape(-1, 3)
+        self._ids = {a: i for i, a in enumerate(agents)}
+        self.tracker.reset()
+        self.neighbours.reset(agents, layout.uav_positions, self.name, self._r_c)
+        self.belief: NeighbourBelief | None = None
+        self.info, self._context, self._rows = None, None, None
+
+    def observe(self, info: dict) -> Estimate | None:
+        """Take this step's ``info`` (measurement, own state, messages); returns the estimate."""
+        self.tracker.update(info)
+        self.neighbours.update(info["neighbours"])
+        self.belief = self.neighbours.belief()
+        self.info, self._rows = info, None
+        self._context = self._make_context(info, self.belief)
+        return self.tracker.estimate
+
+    def context(self) -> SafetyContext:
+        """The CBF-QP's view of the latest observation."""
+        if self._context is None:
+            raise RuntimeError(f"{self.name}: no observation yet; call observe(info) after reset")
+        return self._context
+
+    def rows(self) -> CBFRows:
+        """The CBF rows of the latest observation (built once per observation)."""
+        if self._rows is None:
+            self._rows = self.filter.rows(self.context())
+        return self._rows
+
+    def certify(self, u_nominal: np.ndarray) -> tuple[np.ndarray, ShieldReport]:
+        """The safe camera-frame command (SI units) closest to ``u_nominal``, and a report."""
+        return self.filter.certify(u_nominal, self.context(), self.rows())
+
+    def _make_context(self, info: dict, belief: NeighbourBelief) -> SafetyContext:
+        """The CBF-QP's view: own pose and velocity, the team-mates as believed (and, for
+        second-order rows, their velocities), the known obstacles, the car's estimate."""
+        own, est = info["own"], self.tracker.estimate
+        ctx = SafetyContext(
+            position=own["position"],
+            yaw=own["yaw"],
+            velocity=own["velocity"],
+            neighbours=belief.positions,
+            neighbour_velocities=belief.velocities if self._lag else None,
+            obstacle_centers=self.obstacle_centers,
+            obstacle_half_extents=self.obstacle_half_extents,
+            target_position=None if est is None else est.target_position,
+            target_velocity=None if est is None else est.target_velocity,
+        )
+        # Set in place (like SafetyContext's own __post_init__): dataclasses.replace would
+        # re-validate every array.
+        put = object.__setattr__
+        put(ctx, "neighbour_ids", tuple(self._ids[a] for a in belief.names))
+        if est is not None:
+            heading, half = car_box(est, self.config.margins)
+            put(ctx, "target_half_extents", half)
+            put(ctx, "target_heading", heading)
+        return ctx
+
+
+def car_box(est: Estimate, margins: ShieldMargins) -> tuple[float, np.ndarray]:
+    """The car's exclusion box from a UKF estimate: (heading, half extents).
+
+    The car (4.6 x 1.8 x 1.5 m, section VI-A) is oriented along the estimated velocity. The box
+    holds every rotation of the car within ``target_sigmas`` standard deviations of that heading
+    (sigma = sigma_v / |v|; a car slower than 0.1 m/s may point anywhere: the half diagonal on
+    both axes), inflated by ``target_margin`` plus ``target_sigmas`` position standard deviations
+    (capped at ``target_margin_max``), and, once the car has not been detected for
+    ``target_stale_after`` s, by ``target_speed_max`` times the time since then (the car may have
+    left the prediction at up to that speed).
+    """
+    var = np.diag(est.covariance)
+    vx, vy = float(est.target_velocity[0]), float(est.target_velocity[1])
+    speed = math.hypot(vx, vy)
+    if speed > 0.1:
+        heading = math.atan2(vy, vx)
+        sigma_v = math.sqrt(max(float(var[7]), float(var[8]), 0.0))
+        spread = min(margins.target_sigmas * sigma_v / speed, math.pi / 2)
+    else:
+        heading, spread = 0.0, math.pi / 2
+    a, b, c = (float(x) for x in CAR_HALF_EXTENTS)
+    diag = math.hypot(a, b)
+    # the bounding box of the car rotated by any angle in [-spread, spread]
+    hx = diag if spread >= math.atan2(b, a) else a * math.cos(spread) + b * math.sin(spread)
+    hy = diag if spread >= math.atan2(a, b) else a * math.sin(spread) + b * math.cos(spread)
+    sigma_p = math.sqrt(max(float(np.max(var[4:7])), 0.0))
+    pad = min(margins.target_margin + margins.target_sigmas * sigma_p, margins.target_margin_max)
+    stale = est.steps_since_detection * DT - margins.target_stale_after
+    if stale > 0.0:
+        pad += margins.target_speed_max * stale
+    return heading, np.array([hx, hy, c]) + pad

@@ -115,11 +115,17 @@ def occlusion_angles(rec: EpisodeRecorder, agent: str, theta_star: float, path: 
 
 
 def all_figures(
-    rec: EpisodeRecorder, env_config, references, half_extents, out: Path, suffix: str = ""
+    rec: EpisodeRecorder,
+    env_config,
+    cbf,
+    references,
+    half_extents,
+    out: Path,
+    suffix: str = "",
 ) -> list[Path]:
-    """Write every figure into ``out``; returns the paths."""
+    """Write every figure into ``out``; ``cbf`` is the resolved `CBFConfig` the expert
+    certified with (its R_s, R_c and theta* are drawn). Returns the paths."""
     out.mkdir(parents=True, exist_ok=True)
-    cbf = env_config.cbf
     paths = [
         image_trajectories(rec, references, env_config.camera, out / f"fig12_image{suffix}.png"),
         depth_errors(rec, out / f"fig13_depth{suffix}.png"),

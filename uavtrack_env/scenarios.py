@@ -160,11 +160,11 @@ def _formation_start(
         if offset > 0.2 and not _car_in_view(positions, yaws, cfg):
             continue
         pair = np.linalg.norm(positions[:, None] - positions[None], axis=-1)
-        apart = n < 2 or pair[~np.eye(n, dtype=bool)].min() >= cfg.cbf.r_s + 0.4
+        apart = n < 2 or pair[~np.eye(n, dtype=bool)].min() >= cfg.violations.r_s + 0.4
         if (
-            positions[:, 2].min() >= cfg.cbf.z_min + 0.4
+            positions[:, 2].min() >= cfg.random_world.min_start_altitude
             and apart
-            and connected(pair, np.ones(n, bool), cfg.cbf.r_c)
+            and connected(pair, np.ones(n, bool), cfg.comms.r_c)
         ):
             return positions, yaws
     raise ValueError(f"no feasible start within start_offset = {offset} m after 1000 draws")

@@ -9,7 +9,8 @@ generator. Everything is vectorised over the UAVs.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
+from typing import NamedTuple
 
 import numpy as np
 
@@ -47,6 +48,47 @@ class Detections:
     truncated: np.ndarray
     """(n, 2) bool: the box is cut by the image's left/right (column 0) or top/bottom (column 1)
     border, so its centre is biased towards the image along that axis."""
+
+    def copy(self) -> Detections:
+        """A deep copy (every array copied)."""
+        return Detections(**{f.name: getattr(self, f.name).copy() for f in fields(self)})
+
+
+@dataclass(frozen=True)
+class UAVSnapshot:
+    """The true state of the UAVs and the car at one step, and the detector's last frame.
+
+    Returned by ``UAVTrackEnv.snapshot()``: every array is a copy, never a view of the env's
+    state. The layout (obstacles, references) is ``env.layout``.
+    """
+
+    positions: np.ndarray
+    """(n, 3) UAV positions in the global frame (m)."""
+    yaws: np.ndarray
+    """(n,) UAV headings (rad); the camera looks along the heading."""
+    velocities: np.ndarray
+    """(n, 3) UAV velocities in the global frame (m/s)."""
+    yaw_rates: np.ndarray
+    """(n,) global yaw rates (rad/s), = -omega_cy."""
+    alive: np.ndarray
+    """(n,) bool: the UAV is still in the episode."""
+    target_center: np.ndarray
+    """(3,) centre of the car's box (m)."""
+    target_heading: float
+    """Heading of the car (rad)."""
+    detection: Detections | None
+    """The detector's frame at this step (None before the first reset)."""
+
+
+class _Projection(NamedTuple):
+    """Target points in each UAV's camera frame (n, P) and their pixels (inf behind the camera)."""
+
+    X: np.ndarray
+    Y: np.ndarray
+    Z: np.ndarray
+    front: np.ndarray
+    pu: np.ndarray
+    pv: np.ndarray
 
 
 def _unit_grid(counts: tuple[int, int, int]) -> np.ndarray:
@@ -86,9 +128,39 @@ class Detector:
         target_heading: float,
         rng: np.random.Generator,
     ) -> Detections:
-        cam, cfg, s = self.camera, self.cfg, self._n_samples
-        n = len(positions)
+        """One frame for all UAVs: project, ray-cast, box, then add noise and dropouts."""
+        s = self._n_samples
         points = _to_world(self._local, target_center, target_yaw)  # (P, 3)
+        proj = self._project(points, positions, yaws)
+        z0 = np.where(np.abs(proj.Z[:, 0]) < 1e-9, 1e-9, proj.Z[:, 0])
+        psi = relative_angle(positions, target_center, target_heading)
+        true = np.column_stack([proj.X[:, 0] / z0, proj.Y[:, 0] / z0, 1.0 / z0, psi])
+        visible, blocked = self._visibility(world, positions, points[1 : 1 + s], proj)
+        all_front, box_u, box_v, truncated = self._box(proj)
+        detected, noisy = self._measure(all_front, visible, box_u, box_v, proj.Z[:, 0], psi, rng)
+        cam = self.camera
+        return Detections(
+            detected=detected,
+            u=noisy[0],
+            v=noisy[1],
+            depth=noisy[2],
+            psi=noisy[3],
+            visible_fraction=visible,
+            blocked_fraction=blocked,
+            truncated=truncated,
+            true_features=true,
+            in_front=proj.front[:, 0],
+            box_center=np.column_stack(
+                [
+                    np.where(all_front, box_u, cam.fx * true[:, 0] + cam.cu),
+                    np.where(all_front, box_v, cam.fy * true[:, 1] + cam.cv),
+                ]
+            ),
+        )
+
+    def _project(self, points: np.ndarray, positions: np.ndarray, yaws: np.ndarray) -> _Projection:
+        """Camera-frame coordinates and pixels of the (P,) target points seen by the n UAVs."""
+        cam = self.camera
         d = points[None] - positions[:, None]  # (n, P, 3)
         c, sn = np.cos(yaws)[:, None], np.sin(yaws)[:, None]
         X = sn * d[..., 0] - c * d[..., 1]  # camera frame, see geometry.world_to_cam_vec
@@ -96,60 +168,60 @@ class Detector:
         Z = c * d[..., 0] + sn * d[..., 1]
         front = Z > cam.near
         Zs = np.where(front, Z, np.inf)
-        pu = cam.fx * X / Zs + cam.cu
-        pv = cam.fy * Y / Zs + cam.cv
+        return _Projection(X, Y, Z, front, cam.fx * X / Zs + cam.cu, cam.fy * Y / Zs + cam.cv)
 
-        z0 = np.where(np.abs(Z[:, 0]) < 1e-9, 1e-9, Z[:, 0])
-        psi = relative_angle(positions, target_center, target_heading)
-        true = np.column_stack([X[:, 0] / z0, Y[:, 0] / z0, 1.0 / z0, psi])
-        in_front = front[:, 0]
-
+    def _visibility(
+        self, world: World, positions: np.ndarray, samples: np.ndarray, proj: _Projection
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """(visible, blocked) fractions (n,) of the sample points: in the image and reached by a
+        ray; blocked = not reached (whatever the image bounds)."""
+        cam, s, n = self.camera, self._n_samples, len(positions)
         sp = slice(1, 1 + s)
-        in_image = (
-            front[:, sp]
-            & (pu[:, sp] >= 0)
-            & (pu[:, sp] < cam.width)
-            & (pv[:, sp] >= 0)
-            & (pv[:, sp] < cam.height)
-        )
+        pu, pv = proj.pu[:, sp], proj.pv[:, sp]
+        in_image = proj.front[:, sp] & (pu >= 0) & (pu < cam.width) & (pv >= 0) & (pv < cam.height)
         reach = world.rays_reach_target(
-            np.repeat(positions, s, axis=0), np.tile(points[sp], (n, 1))
+            np.repeat(positions, s, axis=0), np.tile(samples, (n, 1))
         ).reshape(n, s)
-        visible = (in_image & reach).mean(axis=1)
-        blocked = 1.0 - reach.mean(axis=1)
+        return (in_image & reach).mean(axis=1), 1.0 - reach.mean(axis=1)
 
-        cs = slice(1 + s, None)
-        all_front = front[:, cs].all(axis=1)
-        cu = np.clip(pu[:, cs], 0.0, cam.width)
-        cv = np.clip(pv[:, cs], 0.0, cam.height)
-        truncated = np.column_stack([(cu != pu[:, cs]).any(axis=1), (cv != pv[:, cs]).any(axis=1)])
+    def _box(self, proj: _Projection) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """From the 8 projected corners: (all corners in front (n,), box centre u (n,), v (n,),
+        truncated by the image border (n, 2))."""
+        cam = self.camera
+        cs = slice(1 + self._n_samples, None)
+        pu, pv = proj.pu[:, cs], proj.pv[:, cs]
+        cu = np.clip(pu, 0.0, cam.width)
+        cv = np.clip(pv, 0.0, cam.height)
+        truncated = np.column_stack([(cu != pu).any(axis=1), (cv != pv).any(axis=1)])
         box_u = 0.5 * (cu.min(axis=1) + cu.max(axis=1))
         box_v = 0.5 * (cv.min(axis=1) + cv.max(axis=1))
+        return proj.front[:, cs].all(axis=1), box_u, box_v, truncated
 
+    def _measure(
+        self,
+        all_front: np.ndarray,
+        visible: np.ndarray,
+        box_u: np.ndarray,
+        box_v: np.ndarray,
+        depth: np.ndarray,
+        psi: np.ndarray,
+        rng: np.random.Generator,
+    ) -> tuple[np.ndarray, tuple[np.ndarray, ...]]:
+        """Detected flags (n,) and the noisy (u, v, depth, psi), NaN where not detected."""
+        cam, cfg = self.camera, self.cfg
+        n = len(all_front)
         # A fixed number of draws per frame keeps the random stream independent of outcomes.
         noise = rng.standard_normal((n, 4))
         dropped = rng.random(n) < cfg.dropout_prob
         detected = all_front & (visible >= cfg.min_visible_fraction) & ~dropped
         nan = np.full(n, np.nan)
-        return Detections(
-            detected=detected,
-            u=np.where(detected, box_u + cfg.pixel_noise_std * noise[:, 0], nan),
-            v=np.where(detected, box_v + cfg.pixel_noise_std * noise[:, 1], nan),
-            depth=np.where(
-                detected, np.maximum(Z[:, 0] + cfg.depth_noise_std * noise[:, 2], cam.near), nan
+        return detected, (
+            np.where(detected, box_u + cfg.pixel_noise_std * noise[:, 0], nan),
+            np.where(detected, box_v + cfg.pixel_noise_std * noise[:, 1], nan),
+            np.where(
+                detected, np.maximum(depth + cfg.depth_noise_std * noise[:, 2], cam.near), nan
             ),
-            psi=np.where(detected, wrap_angle(psi + cfg.psi_noise_std * noise[:, 3]), nan),
-            visible_fraction=visible,
-            blocked_fraction=blocked,
-            truncated=truncated,
-            true_features=true,
-            in_front=in_front,
-            box_center=np.column_stack(
-                [
-                    np.where(all_front, box_u, cam.fx * true[:, 0] + cam.cu),
-                    np.where(all_front, box_v, cam.fy * true[:, 1] + cam.cv),
-                ]
-            ),
+            np.where(detected, wrap_angle(psi + cfg.psi_noise_std * noise[:, 3]), nan),
         )
 
 

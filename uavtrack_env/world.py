@@ -161,6 +161,18 @@ class World:
         )
         return np.asarray(img[2], np.uint8).reshape(height, width, 4)[:, :, :3].copy()
 
+    def point_gui_camera(
+        self, target: np.ndarray, distance: float, yaw_deg: float, pitch_deg: float
+    ) -> None:
+        """Aim the GUI's debug camera at ``target`` (only meaningful with ``gui=True``)."""
+        p.resetDebugVisualizerCamera(
+            cameraDistance=distance,
+            cameraYaw=yaw_deg,
+            cameraPitch=pitch_deg,
+            cameraTargetPosition=np.asarray(target, float).tolist(),
+            physicsClientId=self.cid,
+        )
+
     def close(self) -> None:
         if self.cid >= 0:
             try:

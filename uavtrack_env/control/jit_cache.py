@@ -1,4 +1,4 @@
-"""A caching C compiler front end for CasADi's JIT (``NMPCOptions(jit=True)``).
+"""A caching C compiler front end for CasADi's JIT (``NMPCConfig(jit=True)``).
 
 CasADi's shell compiler calls ``<compiler> <flags> -c <source> -o <object>`` for every JIT build.
 The generated source of the NMPC's NLP is the same in every process with the same settings, so

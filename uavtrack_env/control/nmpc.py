@@ -28,72 +28,18 @@ import shutil
 import sys
 import tempfile
 import time
-from dataclasses import dataclass, field
-from typing import Literal
+from dataclasses import dataclass, field, replace
 
 import casadi as ca
 import numpy as np
 
-from uavtrack_env.config import ControlLimits, FeatureBounds, NMPCConfig
+from uavtrack_env.config import DT, ControlLimits
 from uavtrack_env.control import jit_cache
+from uavtrack_env.control.config import FeatureBounds, NMPCConfig
 from uavtrack_env.geometry import feature_rates, wrap_angle
 
 _TWO_PI = 2.0 * math.pi
 _NO_ROWS = np.zeros(0)
-
-
-@dataclass(frozen=True)
-class NMPCOptions:
-    """Implementation tunables of the NMPC that Table III does not fix."""
-
-    integrator: Literal["rk4", "euler"] = "rk4"
-    """Discretisation of eq. (15) over one step dt to get F_m of eq. (19)."""
-    error_signal: bool = True
-    """Use the error signal eps_k of eq. (16) in s_d = s* - eps_k of eq. (17); False: s_d = s*."""
-    eps_max: tuple[float, float, float, float] = (0.1, 0.1, 0.05, 0.2)
-    """Cap on |eps_k| per feature (not in the paper): a UKF jump must not move s_d far."""
-    slack_weight: float = 1000.0
-    """L1 penalty on Table I bound violations (exact penalty; not in the paper)."""
-    slack_hessian: float = 1.0
-    """Curvature added on the slacks in the Gauss-Newton SQP Hessian (step only, not the cost)."""
-    hessian: Literal["gauss-newton", "exact"] = "gauss-newton"
-    """SQP/RTI Hessian: the constant Hessian of cost (18) ('gauss-newton') or the exact one."""
-    qpsol: str = "qrqp"
-    """CasADi QP plugin used by 'sqp' and 'rti'."""
-    qrqp_min_lam: float = 1e-3
-    """qrqp's ``min_lam``: warm-start multipliers below this start inactive. With 0 (qrqp's
-    default) the shifted multipliers of the plan's safety rows made qrqp cycle between two
-    degenerate active sets (146 SQP failures in the first 12 s of C0 with the tuned planner, 12
-    with 1e-3; BENCHMARKS.md, session 7)."""
-    tol: float = 1e-4
-    """Primal and dual stopping tolerance of 'sqp'. 1e-4 stops after ~3 iterations instead of
-    ~5 at 1e-6 and moves u_k by < 2e-5 in the benchmark loop (BENCHMARKS.md, session 5)."""
-    ipopt_tol: float = 1e-6
-    """Stopping tolerance of 'ipopt' (the paper's solver, and the cold starts and rescues)."""
-    expand: bool = True
-    """Expand the MX graph to SX (faster evaluation)."""
-    jit: bool = False
-    """JIT-compile the NLP functions with the system C compiler (``$CC`` or gcc): ~1.7x faster
-    SQP solves. The first build on a machine compiles for 30-80 s; later processes with the same
-    settings reuse the objects from `jit_cache` (~3 s). See BENCHMARKS.md."""
-    rescue_with_ipopt: bool = True
-    """If 'sqp'/'rti' fails, re-solve the same problem with Ipopt before falling back."""
-    max_fallback_steps: int = 10
-    """Consecutive failures served from the shifted previous plan before hovering."""
-
-    def __post_init__(self) -> None:
-        if self.integrator not in ("rk4", "euler"):
-            raise ValueError(f"integrator must be 'rk4' or 'euler', got {self.integrator!r}")
-        if self.hessian not in ("gauss-newton", "exact"):
-            raise ValueError(f"hessian must be 'gauss-newton' or 'exact', got {self.hessian!r}")
-        if len(self.eps_max) != 4 or any(e < 0 for e in self.eps_max):
-            raise ValueError(f"eps_max must be 4 non-negative numbers, got {self.eps_max}")
-        if self.slack_weight <= 0 or self.tol <= 0 or self.ipopt_tol <= 0:
-            raise ValueError("slack_weight, tol and ipopt_tol must be > 0")
-        if not self.qrqp_min_lam >= 0:
-            raise ValueError(f"qrqp_min_lam must be >= 0, got {self.qrqp_min_lam}")
-        if self.max_fallback_steps < 0:
-            raise ValueError("max_fallback_steps must be >= 0")
 
 
 @dataclass
@@ -121,7 +67,7 @@ class NMPCResult:
 
 
 _BUILT: dict[tuple, dict] = {}
-"""Built NLPs by (cfg, limits, bounds, options, W_s): every UAV with the same settings shares one
+"""Built NLPs by (cfg, limits, bounds, W_s): every UAV with the same settings shares one
 (the reference enters as a parameter; the warm start lives in the NMPC instance), so a fleet
 pays the build, or the JIT compile, once per process."""
 _BUILT_ATTRS = (
@@ -258,24 +204,22 @@ class NMPC:
         cfg: NMPCConfig = NMPCConfig(),  # noqa: B008 (frozen dataclass)
         limits: ControlLimits = ControlLimits(),  # noqa: B008
         bounds: FeatureBounds = FeatureBounds(),  # noqa: B008
-        options: NMPCOptions | None = None,
         **overrides,
     ) -> None:
+        """``overrides``: `NMPCConfig` fields replaced in ``cfg``, e.g. ``error_signal=False``."""
         self.reference = _vec("reference", reference, 4).copy()
+        if overrides:
+            cfg = replace(cfg, **overrides)
         if cfg.solver not in ("sqp", "ipopt", "rti"):
             raise ValueError(f"solver must be 'sqp', 'ipopt' or 'rti', got {cfg.solver!r}")
-        if options is None:
-            options = NMPCOptions(**overrides)
-        elif overrides:
-            raise TypeError(f"pass either options or keyword overrides, not both: {overrides}")
-        self.cfg, self.limits, self.bounds, self.options = cfg, limits, bounds, options
+        self.cfg, self.limits, self.bounds = cfg, limits, bounds
         self.N = cfg.horizon
-        self._F = _discrete_model(cfg.dt, options.integrator)
+        self._F = _discrete_model(DT, cfg.integrator)
         self.w_terminal = (
             self._lqr_weight() if cfg.terminal_weight == "lqr" else np.diag(cfg.w_s).astype(float)
         )
         """W_s of eq. (18) in this controller's NLP (4, 4)."""
-        key = (cfg, limits, bounds, options, self.w_terminal.tobytes())
+        key = (cfg, limits, bounds, self.w_terminal.tobytes())
         built = _BUILT.get(key)
         if built is None:
             self._build()
@@ -288,8 +232,38 @@ class NMPC:
 
     # ------------------------------------------------------------------ build
     def _build(self) -> None:
-        N, cfg, opt = self.N, self.cfg, self.options
-        # Stage-wise decision vector: x_0, u_0, x_1, u_1, sig_1, ..., x_N, sig_N.
+        """Build the NLP of eqs. (18)-(19) by direct multiple shooting, and its solvers."""
+        nw = self._layout()
+        nr = self.cfg.safety_rows
+        w = ca.MX.sym("w", nw)
+        # Parameters: s_k (4), s_d (4), vq_cam (3), aq_cam (3), omega_d (1), then nr rows
+        # a_c (3 nr) and b (nr).
+        p = ca.MX.sym("p", 15 + 4 * nr)
+        cost, g, lbg, ubg = self._tracking_problem(w, p)
+        K = self.cfg.safety_row_stages or self.N
+        if nr:
+            cost = self._add_safety_rows(w, p, K, cost, g, lbg, ubg)
+        g = ca.vertcat(*g)
+        self._lbg, self._ubg = np.concatenate(lbg), np.concatenate(ubg)
+        self._nw, self._ng = nw, g.shape[0]
+        self._lbx, self._ubx = self._variable_bounds()
+        self._shift_w, self._shift_g = self._shift_indices(K)
+
+        nlp = {"x": w, "p": p, "f": cost, "g": g}
+        self._nlp = nlp
+        if self.cfg.jit:
+            with _jit_build_dir() as build:
+                self._make_solvers(nlp, _jit_options(build))
+        else:
+            self._make_solvers(nlp, {})
+
+    def _layout(self) -> int:
+        """Index the decision vector; returns its length.
+
+        Stage-wise: x_0, u_0, x_1, u_1, sig_1, ..., x_N, sig_N (sig: slacks of Table I's soft
+        bounds), then one L1 slack per safety half-space.
+        """
+        N = self.N
         names, sizes = [], []
         for n in range(N + 1):
             names.append(("x", n))
@@ -306,17 +280,17 @@ class NMPC:
         self._ix = np.stack([index[("x", n)] for n in range(N + 1)])  # (N+1, 4)
         self._iu = np.stack([index[("u", n)] for n in range(N)])  # (N, 4)
         self._isig = np.stack([index[("sig", n)] for n in range(1, N + 1)])  # (N, 3)
-        nr = cfg.safety_rows
+        nr = self.cfg.safety_rows
         self._irow = np.arange(nw, nw + nr)  # one L1 slack per safety half-space
-        nw += nr
+        return nw + nr
 
-        w = ca.MX.sym("w", nw)
-        # Parameters: s_k (4), s_d (4), vq_cam (3), aq_cam (3), omega_d (1), then nr rows
-        # a_c (3 nr) and b (nr).
-        p = ca.MX.sym("p", 15 + 4 * nr)
+    def _tracking_problem(self, w: ca.MX, p: ca.MX) -> tuple[ca.MX, list, list, list]:
+        """Cost (18) and constraints (19) with Table I's bounds softened: cost, g, lbg, ubg.
+
+        g rows: 4 for the initial node, then per stage 4 dynamics and 6 soft bounds.
+        """
+        N, cfg = self.N, self.cfg
         s0, s_d, vq, aq, w_d = p[0:4], p[4:8], p[8:11], p[11:14], p[14]
-        rows_a = ca.reshape(p[15 : 15 + 3 * nr], 3, nr).T if nr else None
-        rows_b = p[15 + 3 * nr :]
         Q, R = (ca.diag(ca.DM(v)) for v in (cfg.q_s, cfg.r_u))
         # W_s of (18): diagonal, or a full matrix for 'lqr' (it is part of the build key)
         W = ca.sparsify(ca.DM(self.w_terminal))
@@ -335,7 +309,7 @@ class NMPC:
         cost = 0
         g, lbg, ubg = [X(0) - s0], [np.zeros(4)], [np.zeros(4)]  # (19): s_m,k = s_k
         for n in range(N):
-            vq_n = vq + aq * (n * cfg.dt)  # (19): u_d,k+n = u_d,k + n [a_q dt, 0]
+            vq_n = vq + aq * (n * DT)  # (19): u_d,k+n = u_d,k + n [a_q dt, 0]
             u_d = ca.vertcat(vq_n, w_d)  # w_d = 0 in the paper
             e_s, e_u = X(n) - s_d, U(n) - u_d
             cost += ca.bilin(Q, e_s, e_s) + ca.bilin(R, e_u, e_u)  # stage cost of (18)
@@ -347,32 +321,45 @@ class NMPC:
             g += [xs + sig, xs - sig]
             lbg += [lo, np.full(3, -np.inf)]
             ubg += [np.full(3, np.inf), hi]
-            cost += opt.slack_weight * ca.sum1(sig)
+            cost += cfg.slack_weight * ca.sum1(sig)
         e_N = X(N) - s_d
         cost += ca.bilin(W, e_N, e_N)  # terminal cost of (18)
-        K = cfg.safety_row_stages or N
-        if nr:  # the shield's half-spaces a_c v <= b on the planned velocities, L1-softened
-            slack = w[int(self._irow[0]) : int(self._irow[0]) + nr]
-            for n in range(K):
-                g.append(rows_a @ U(n)[0:3] - slack - rows_b)
-                lbg.append(np.full(nr, -np.inf))
-                ubg.append(np.zeros(nr))
-            cost += opt.slack_weight * ca.sum1(slack)
-        g = ca.vertcat(*g)
-        self._lbg, self._ubg = np.concatenate(lbg), np.concatenate(ubg)
-        ng = g.shape[0]
+        return cost, g, lbg, ubg
 
-        lbx, ubx = np.full(nw, -np.inf), np.full(nw, np.inf)
+    def _add_safety_rows(
+        self, w: ca.MX, p: ca.MX, K: int, cost: ca.MX, g: list, lbg: list, ubg: list
+    ) -> ca.MX:
+        """Append the shield's half-spaces a_c v <= b (47) on the velocities of plan stages
+        0..K-1, L1-softened, to g, lbg, ubg; returns the cost with their penalty."""
+        nr = self.cfg.safety_rows
+        rows_a = ca.reshape(p[15 : 15 + 3 * nr], 3, nr).T
+        rows_b = p[15 + 3 * nr :]
+        slack = w[int(self._irow[0]) : int(self._irow[0]) + nr]
+        for n in range(K):
+            u_n = w[int(self._iu[n, 0]) : int(self._iu[n, 0]) + 4]
+            g.append(rows_a @ u_n[0:3] - slack - rows_b)
+            lbg.append(np.full(nr, -np.inf))
+            ubg.append(np.zeros(nr))
+        cost += self.cfg.slack_weight * ca.sum1(slack)
+        return cost
+
+    def _variable_bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """lbx, ubx: Table II on the inputs (hard), slacks >= 0, the states free."""
+        lbx, ubx = np.full(self._nw, -np.inf), np.full(self._nw, np.inf)
         umax = self.limits.scale
         lbx[self._iu] = -umax  # Table II, hard
         ubx[self._iu] = umax
         lbx[self._isig] = 0.0
         lbx[self._irow] = 0.0
-        self._lbx, self._ubx = lbx, ubx
-        self._nw, self._ng = nw, ng
+        return lbx, ubx
 
-        # Warm start by shifting one stage: new node n takes old node n+1 (last one repeated).
-        shift_w = np.arange(nw)
+    def _shift_indices(self, K: int) -> tuple[np.ndarray, np.ndarray]:
+        """Warm start by shifting one stage: new node n takes old node n+1 (last one repeated).
+
+        Returns the permutations of the primal vector w and of the constraint rows g.
+        """
+        N, nr = self.N, self.cfg.safety_rows
+        shift_w = np.arange(self._nw)
         for n in range(N + 1):
             m = min(n + 1, N)
             shift_w[self._ix[n]] = self._ix[m]
@@ -380,9 +367,8 @@ class NMPC:
                 shift_w[self._iu[n]] = self._iu[min(n + 1, N - 1)]
             if n >= 1:
                 shift_w[self._isig[n - 1]] = self._isig[m - 1]
-        self._shift_w = shift_w
         # g rows: 4 initial, then per stage 4 dynamics + 6 soft bounds.
-        shift_g = np.arange(ng)
+        shift_g = np.arange(self._ng)
         for n in range(N):
             m = min(n + 1, N - 1)
             shift_g[4 + 10 * n : 14 + 10 * n] = np.arange(4 + 10 * m, 14 + 10 * m)
@@ -390,26 +376,18 @@ class NMPC:
         for n in range(K):
             m = row0 + nr * min(n + 1, K - 1)
             shift_g[row0 + nr * n : row0 + nr * (n + 1)] = np.arange(m, m + nr)
-        self._shift_g = shift_g
-
-        nlp = {"x": w, "p": p, "f": cost, "g": g}
-        self._nlp = nlp
-        if opt.jit:
-            with _jit_build_dir() as build:
-                self._make_solvers(nlp, _jit_options(build))
-        else:
-            self._make_solvers(nlp, {})
+        return shift_w, shift_g
 
     def _make_solvers(self, nlp: dict, jit: dict) -> None:
         """The Ipopt solver of cold starts and rescues, and the configured solver."""
-        cfg, opt = self.cfg, self.options
-        common: dict = {"print_time": False, "expand": opt.expand, "error_on_fail": False, **jit}
+        cfg = self.cfg
+        common: dict = {"print_time": False, "expand": cfg.expand, "error_on_fail": False, **jit}
         solver = self.cfg.solver
         ipopt_opts = {
             **common,
             "ipopt.print_level": 0,
             "ipopt.sb": "yes",
-            "ipopt.tol": opt.ipopt_tol,
+            "ipopt.tol": cfg.ipopt_tol,
             "ipopt.max_iter": max(cfg.max_iter, 100),
         }
         # Cold starts (first step, after a hover fallback) go to Ipopt: an active-set QP
@@ -422,16 +400,16 @@ class NMPC:
             plug = "sqpmethod"
             sopts = {
                 **common,
-                "qpsol": opt.qpsol,
+                "qpsol": cfg.qpsol,
                 "print_header": False,
                 "print_iteration": False,
                 "print_status": False,
-                "tol_pr": opt.tol,
-                "tol_du": opt.tol,
+                "tol_pr": cfg.tol,
+                "tol_du": cfg.tol,
                 "max_iter": 1 if solver == "rti" else cfg.max_iter,
-                "qpsol_options": self._qp_options(opt.qpsol, opt.qrqp_min_lam),
+                "qpsol_options": self._qp_options(cfg.qpsol, cfg.qrqp_min_lam),
             }
-            if opt.hessian == "gauss-newton":
+            if cfg.hessian == "gauss-newton":
                 sopts["hess_lag"] = self._gauss_newton_hessian(nlp)
             else:
                 sopts["convexify_strategy"] = "regularize"
@@ -474,8 +452,8 @@ class NMPC:
         lam_f = ca.MX.sym("lam_f")
         lam_g = ca.MX.sym("lam_g", nlp["g"].shape[0])
         reg = np.zeros(self._nw)
-        reg[self._isig] = self.options.slack_hessian
-        reg[self._irow] = self.options.slack_hessian
+        reg[self._isig] = self.cfg.slack_hessian
+        reg[self._irow] = self.cfg.slack_hessian
         H = lam_f * ca.hessian(nlp["f"], w)[0] + ca.diag(ca.DM(reg))
         return ca.Function(
             "gn_hess", [w, p, lam_f, lam_g], [H], ["x", "p", "lam_f", "lam_g"], ["hess"]
@@ -507,8 +485,8 @@ class NMPC:
             np.asarray(s, float).tolist(),
             np.asarray(u, float).tolist(),
             np.asarray(vq_cam, float).tolist(),
-            self.cfg.dt,
-            self.options.integrator,
+            DT,
+            self.cfg.integrator,
         )
 
     def solve(
@@ -538,57 +516,20 @@ class NMPC:
         t0 = time.perf_counter()
         s_rel = self.relative_state(s)
 
-        # Error signal (16)-(17).
-        eps = np.zeros(4)
-        if self.options.error_signal:
-            if u_applied is not None and self._last is not None:
-                self._s_pred = self.predict_one_step(self._last[0], u_applied, self._last[1])
-            if self._s_pred is not None:
-                eps = s_rel - self._s_pred
-                eps[3] = float(wrap_angle(eps[3]))
-                cap = np.asarray(self.options.eps_max)
-                eps = np.clip(eps, -cap, cap)
-        s_d = self.reference - eps
+        eps = self._error_signal(s_rel, u_applied)
+        s_d = self.reference - eps  # (17)
         w_d = self.turn_rate_reference(vq, aq)
         p = np.concatenate([s_rel, s_d, vq, aq, [w_d], self._row_params(safety_rows)])
-
-        solver = self._solver
-        if self._w is None:
-            w0 = self._cold_start(s_rel, vq, aq, w_d)
-            args = {"x0": w0}
-            solver = self._cold_solver
-        else:
-            w0 = self._w[self._shift_w]
-            w0[self._ix[0]] = s_rel
-            args = {
-                "x0": w0,
-                "lam_g0": self._lam_g[self._shift_g],
-                "lam_x0": self._lam_x[self._shift_w],
-            }
+        solver, args = self._initial_guess(s_rel, vq, aq, w_d)
         args.update(p=p, lbx=self._lbx, ubx=self._ubx, lbg=self._lbg, ubg=self._ubg)
 
-        ok, sol, status, iters = self._call(solver, args)
-        used = "ipopt" if solver is self._cold_solver else self._solver_plugin
-        if not ok and solver is not self._cold_solver and self.options.rescue_with_ipopt:
-            ok, sol, status, more = self._call(self._cold_solver, args)
-            iters += more
-            used = f"{used}+ipopt"
-
+        ok, sol, status, iters, used = self._solve_or_rescue(solver, args)
         if ok:
-            w_opt = self._w = sol["x"]
-            self._lam_g, self._lam_x = sol["lam_g"], sol["lam_x"]
-            if used != self._solver_plugin and self._solver_plugin != "ipopt":
-                # Ipopt's inactive multipliers are tiny but nonzero; an active-set QP would
-                # read them as an all-active guess and spend hundreds of iterations dropping them.
-                self._lam_g[np.abs(self._lam_g) < 1e-5] = 0.0
-                self._lam_x[np.abs(self._lam_x) < 1e-5] = 0.0
-            self._fallback_count = 0
-            X, Uplan = w_opt[self._ix], w_opt[self._iu]
-            u = np.clip(w_opt[self._iu[0]], -self.limits.scale, self.limits.scale)
+            u, X, Uplan = self._accept(sol, used)
             result_status = status
         else:
             u, X, Uplan, result_status = self._fallback(s_rel, vq)
-        self._s_pred = self.predict_one_step(s_rel, u, vq) if self.options.error_signal else None
+        self._s_pred = self.predict_one_step(s_rel, u, vq) if self.cfg.error_signal else None
         self._last = (s_rel, vq)
         return NMPCResult(
             u=u,
@@ -602,6 +543,68 @@ class NMPC:
             solver_used=used,
             eps=eps,
         )
+
+    def _error_signal(self, s_rel: np.ndarray, u_applied: np.ndarray | None) -> np.ndarray:
+        """eps_k = s_k - s_m,k of eq. (16), psi wrapped, capped at `NMPCConfig.eps_max`.
+
+        s_m,k is the one-step prediction of the last step, redone with ``u_applied`` if given;
+        zero without a prediction or with `NMPCConfig.error_signal` off.
+        """
+        eps = np.zeros(4)
+        if self.cfg.error_signal:
+            if u_applied is not None and self._last is not None:
+                self._s_pred = self.predict_one_step(self._last[0], u_applied, self._last[1])
+            if self._s_pred is not None:
+                eps = s_rel - self._s_pred
+                eps[3] = float(wrap_angle(eps[3]))
+                cap = np.asarray(self.cfg.eps_max)
+                eps = np.clip(eps, -cap, cap)
+        return eps
+
+    def _initial_guess(
+        self, s_rel: np.ndarray, vq: np.ndarray, aq: np.ndarray, w_d: float
+    ) -> tuple[_BufferedSolver, dict]:
+        """The solver for this step and its start: Ipopt from `_cold_start` without a previous
+        plan, else the configured solver from the shifted previous primal and dual solution."""
+        if self._w is None:
+            w0 = self._cold_start(s_rel, vq, aq, w_d)
+            return self._cold_solver, {"x0": w0}
+        w0 = self._w[self._shift_w]
+        w0[self._ix[0]] = s_rel
+        args = {
+            "x0": w0,
+            "lam_g0": self._lam_g[self._shift_g],
+            "lam_x0": self._lam_x[self._shift_w],
+        }
+        return self._solver, args
+
+    def _solve_or_rescue(
+        self, solver: _BufferedSolver, args: dict
+    ) -> tuple[bool, dict | None, str, int, str]:
+        """Run ``solver``; if the configured solver fails, re-solve with Ipopt
+        (`NMPCConfig.rescue_with_ipopt`). Success, solution, status, iterations, solver used."""
+        ok, sol, status, iters = self._call(solver, args)
+        used = "ipopt" if solver is self._cold_solver else self._solver_plugin
+        if not ok and solver is not self._cold_solver and self.cfg.rescue_with_ipopt:
+            ok, sol, status, more = self._call(self._cold_solver, args)
+            iters += more
+            used = f"{used}+ipopt"
+        return ok, sol, status, iters, used
+
+    def _accept(self, sol: dict, used: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Keep a converged solution as the next warm start; returns u_k (clipped to Table II),
+        the predicted features and the planned inputs."""
+        w_opt = self._w = sol["x"]
+        self._lam_g, self._lam_x = sol["lam_g"], sol["lam_x"]
+        if used != self._solver_plugin and self._solver_plugin != "ipopt":
+            # Ipopt's inactive multipliers are tiny but nonzero; an active-set QP would
+            # read them as an all-active guess and spend hundreds of iterations dropping them.
+            self._lam_g[np.abs(self._lam_g) < 1e-5] = 0.0
+            self._lam_x[np.abs(self._lam_x) < 1e-5] = 0.0
+        self._fallback_count = 0
+        X, Uplan = w_opt[self._ix], w_opt[self._iu]
+        u = np.clip(w_opt[self._iu[0]], -self.limits.scale, self.limits.scale)
+        return u, X, Uplan
 
     def _row_params(self, rows: tuple[np.ndarray, np.ndarray] | None) -> np.ndarray:
         """Parameter block of the safety half-spaces; unused slots are 0 <= 1."""
@@ -657,7 +660,7 @@ class NMPC:
         """Initial guess: move with the target (u = u_d), features stay where they are."""
         w0 = np.zeros(self._nw)
         w0[self._ix] = s_rel
-        n = np.arange(self.N)[:, None] * self.cfg.dt
+        n = np.arange(self.N)[:, None] * DT
         u_d = np.hstack([vq + aq * n, np.full((self.N, 1), w_d)])
         w0[self._iu] = np.clip(u_d, -self.limits.scale, self.limits.scale)
         lo = np.array([self.bounds.x1[0], self.bounds.x2[0], self.bounds.x3[0]])
@@ -668,7 +671,7 @@ class NMPC:
     def _fallback(self, s_rel: np.ndarray, vq: np.ndarray) -> tuple[np.ndarray, ...]:
         """Defined action on solver failure: shifted previous plan, else hover with the target."""
         umax = self.limits.scale
-        if self._w is not None and self._fallback_count < self.options.max_fallback_steps:
+        if self._w is not None and self._fallback_count < self.cfg.max_fallback_steps:
             self._w = self._w[self._shift_w]
             self._lam_g = self._lam_g[self._shift_g]
             self._fallback_count += 1

@@ -25,6 +25,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from uavtrack_env.validation import Fields as _Fields
+
 
 @dataclass(frozen=True)
 class ViewpointConfig:
@@ -57,12 +59,21 @@ class ViewpointConfig:
     """How often the sight-line geometry is re-evaluated (s); x2* itself moves every step."""
 
     def __post_init__(self) -> None:
-        if self.horizon_s < 0 or self.samples < 1 or self.replan_period_s <= 0:
-            raise ValueError("horizon_s must be >= 0, samples >= 1 and replan_period_s > 0")
-        if self.top_margin_m < 0 or self.footprint_margin_m < 0 or self.target_height_m < 0:
-            raise ValueError("margins and target_height_m must be >= 0")
-        if not 0 < self.x2_max < 1 or self.rate <= 0:
-            raise ValueError("x2_max must lie in (0, 1) and rate must be > 0")
+        f = _Fields(self)
+        f.flag("enabled")
+        f.number("horizon_s", lo=0)
+        f.integer("samples", lo=1)
+        for name in (
+            "target_height_m",
+            "visible_height_m",
+            "top_margin_m",
+            "footprint_margin_m",
+            "max_box_offset",
+        ):
+            f.number(name, lo=0)
+        f.number("x2_max", lo=0, hi=1, lo_open=True, hi_open=True)
+        f.number("rate", lo=0, lo_open=True)
+        f.number("replan_period_s", lo=0, lo_open=True)
 
 
 def entry_fraction(

@@ -43,6 +43,7 @@ from filterpy.kalman import MerweScaledSigmaPoints, UnscentedKalmanFilter, unsce
 from uavtrack_env.config import DT, CameraConfig
 from uavtrack_env.estimation.motion_prediction import MotionFit, MotionHistory
 from uavtrack_env.geometry import cam_to_world_vec, feature_rates, world_to_cam_vec, wrap_angle
+from uavtrack_env.validation import Fields as _Fields
 
 DIM_X = 10
 """State size, eq. (5)."""
@@ -122,43 +123,36 @@ class UKFConfig:
     """Vectorised filterpy subclass (same numbers to 1e-9, ~5x faster) instead of plain filterpy."""
 
     def __post_init__(self) -> None:
-        def pos(name: str, values) -> None:
-            vals = np.atleast_1d(np.asarray(values, dtype=float))
-            if not (np.all(np.isfinite(vals)) and np.all(vals > 0)):
-                raise ValueError(f"{name} must be finite and > 0, got {values}")
-
+        f = _Fields(self)
+        positive = {"lo": 0, "lo_open": True}
+        f.tuple("q_features", 4, **positive)
+        f.number("q_position", **positive)
+        f.tuple("q_velocity", 3, **positive)
+        for name in ("pixel_std", "depth_std", "psi_std", "gps_std", "init_position_std"):
+            f.number(name, **positive)
+        f.number("truncated_variance_scale", lo=1)
+        f.tuple("init_velocity_std", 3, **positive)
+        f.number("alpha", **positive)
+        f.number("beta")
+        # Merwe's weights need n + kappa > 0 (lambda + n = alpha^2 (n + kappa)).
+        f.number("kappa", lo=-DIM_X, lo_open=True)
+        f.range_pair("x3_bounds", lo=0, lo_open=True, strict=True)
+        f.number("x12_limit", **positive)
+        f.tuple("max_std", DIM_X, **positive)
+        f.number("fit_window", **positive)
+        order = f.integer("fit_order", lo=0)
+        f.number("fit_velocity_weight", lo=0)
+        f.integer("fit_min_samples", lo=order + 1)  # a degree-k fit needs k + 1 samples
+        f.number("fit_settle_time", lo=0)
+        f.integer("fit_every", lo=1)
+        f.number("max_target_accel", **positive)
         for name in (
-            "q_features",
-            "q_position",
-            "q_velocity",
-            "pixel_std",
-            "depth_std",
-            "psi_std",
-            "gps_std",
-            "init_position_std",
-            "init_velocity_std",
-            "alpha",
-            "x12_limit",
-            "max_std",
-            "fit_window",
-            "max_target_accel",
+            "truncated_v_hold_height",
+            "planar_target",
+            "dropout_use_fit_velocity",
+            "vectorized",
         ):
-            pos(name, getattr(self, name))
-        if len(self.q_features) != 4 or len(self.q_velocity) != 3 or len(self.max_std) != DIM_X:
-            raise ValueError("q_features needs 4 entries, q_velocity 3 and max_std 10")
-        if len(self.init_velocity_std) != 3:
-            raise ValueError("init_velocity_std needs 3 entries")
-        lo, hi = self.x3_bounds
-        if not 0 < lo < hi:
-            raise ValueError(f"x3_bounds must satisfy 0 < lo < hi, got {self.x3_bounds}")
-        if self.fit_order < 0 or self.fit_min_samples < self.fit_order + 1 or self.fit_every < 1:
-            raise ValueError("need fit_order >= 0, fit_min_samples > fit_order, fit_every >= 1")
-        if self.fit_velocity_weight < 0 or self.fit_settle_time < 0:
-            raise ValueError("fit_velocity_weight and fit_settle_time must be >= 0")
-        if not self.truncated_variance_scale >= 1:
-            raise ValueError(
-                f"truncated_variance_scale must be >= 1, got {self.truncated_variance_scale}"
-            )
+            f.flag(name)
 
 
 @dataclass(frozen=True)

@@ -14,6 +14,7 @@ from uavtrack_env.safety.cbf import (
     h_occlusion,
     h_pair,
 )
+from uavtrack_env.safety.config import CBFConfig
 from uavtrack_env.safety.margins import ShieldMargins, shield_cbf
 from uavtrack_env.safety.shield import (
     SOLVERS,
@@ -26,6 +27,7 @@ from uavtrack_env.safety.shield import (
 __all__ = [
     "KIND_NAMES",
     "SOLVERS",
+    "CBFConfig",
     "CBFRows",
     "SafetyContext",
     "SafetyFilter",

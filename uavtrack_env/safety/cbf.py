@@ -34,7 +34,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from uavtrack_env.config import CBFConfig
+from uavtrack_env.safety.config import CBFConfig
 
 KIND_NAMES = ("uav", "obstacle", "target", "floor", "connect", "occlusion")
 """Row family names, indexed by `CBFRows.kind`."""
@@ -461,7 +461,18 @@ def occlusion_rows(
     if nn2 < 1e-18 or not len(idx):
         return _EMPTY3, np.zeros(0), None, idx[:0]
     d = d.take(idx, 0)
-    nd2 = nd2.take(idx)
+    A, h, drift = _angle_rows(d, nd2.take(idx), n, nn2, vq, cbf)
+    if radius is not None:
+        A, h = _widen_by_radius(A, h, d, radius.take(idx))
+    return A, h, drift, idx
+
+
+def _angle_rows(
+    d: np.ndarray, nd2: np.ndarray, n: np.ndarray, nn2: float, vq: np.ndarray, cbf
+) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """A, h = theta - theta* (40) and the target drift (None for 'paper') of the rows (41)-(45)
+    for the occluders d = p_o - p (|d|^2 = nd2) and the sight line n (|n|^2 = nn2); see
+    `occlusion_rows`."""
     inv_dn = 1.0 / np.sqrt(nd2 * nn2)
     x = np.minimum(np.maximum((d @ n) * inv_dn, -1.0), 1.0)
     inv_sin = 1.0 / np.sqrt(np.maximum(1.0 - x * x, 1e-12))
@@ -469,26 +480,33 @@ def occlusion_rows(
     k_n = inv_sin * inv_dn  # A = -k_n n + k_d d  for the paper's model
     k_d = inv_sin * x / nd2
     if cbf.occlusion_model == "paper":
-        A, drift = k_d[:, None] * d - k_n[:, None] * n, None
-    else:
-        # dx/dn adds -(1/sin)(d/(|d||n|) - x n/|n|^2) to A.
-        k_d2 = k_d - k_n
-        k_n2 = k_n - inv_sin * x / nn2
-        A = k_d2[:, None] * d - k_n2[:, None] * n
-        drift = -(inv_sin * inv_dn) * (d @ vq) + (inv_sin * x / nn2) * float(n @ vq)
-    if radius is not None:
-        # beta = asin(r / b), b the horizontal distance to the box's axis (independent of the
-        # occluder's height, so Danskin's argument above still holds); A = -dh/dp gains
-        # d beta/dp = r w / (b^3 sqrt(1 - r^2/b^2)) with w the horizontal part of p_o - p.
-        b2 = np.maximum(d[:, 0] ** 2 + d[:, 1] ** 2, 1e-18)
-        ratio = radius.take(idx) / np.sqrt(b2)
-        clipped = ratio >= 0.99
-        ratio = np.minimum(ratio, 0.99)
-        h = h - np.arcsin(ratio)
-        k_b = np.where(clipped, 0.0, ratio / (b2 * np.sqrt(1.0 - ratio * ratio)))
-        A = A.copy()
-        A[:, :2] += k_b[:, None] * d[:, :2]
-    return A, h, drift, idx
+        return k_d[:, None] * d - k_n[:, None] * n, h, None
+    # dx/dn adds -(1/sin)(d/(|d||n|) - x n/|n|^2) to A.
+    k_d2 = k_d - k_n
+    k_n2 = k_n - inv_sin * x / nn2
+    A = k_d2[:, None] * d - k_n2[:, None] * n
+    drift = -(inv_sin * inv_dn) * (d @ vq) + (inv_sin * x / nn2) * float(n @ vq)
+    return A, h, drift
+
+
+def _widen_by_radius(
+    A: np.ndarray, h: np.ndarray, d: np.ndarray, radius: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """h - beta and its row, beta = asin(r_j / b_j) the box's angular radius (not in the paper).
+
+    b_j is the horizontal distance to the box's axis (independent of the occluder's height, so
+    Danskin's argument of `occluder_points` still holds); A = -dh/dp gains
+    d beta/dp = r w / (b^3 sqrt(1 - r^2/b^2)) with w the horizontal part of p_o - p.
+    """
+    b2 = np.maximum(d[:, 0] ** 2 + d[:, 1] ** 2, 1e-18)
+    ratio = radius / np.sqrt(b2)
+    clipped = ratio >= 0.99
+    ratio = np.minimum(ratio, 0.99)
+    h = h - np.arcsin(ratio)
+    k_b = np.where(clipped, 0.0, ratio / (b2 * np.sqrt(1.0 - ratio * ratio)))
+    A = A.copy()
+    A[:, :2] += k_b[:, None] * d[:, :2]
+    return A, h
 
 
 class RowBuilder:
@@ -517,7 +535,7 @@ class RowBuilder:
             raise ValueError(
                 f"occlusion_model must be 'paper' or 'moving-target', got {cbf.occlusion_model!r}"
             )
-        self.cbf = cbf
+        self.cbf = cbf = cbf if cbf.resolved else cbf.resolve()
         self.obstacle_model = obstacle_model
         self.margin = float(connectivity_margin)
         self.target_as_obstacle = target_as_obstacle
@@ -624,14 +642,7 @@ class RowBuilder:
         v = ctx.velocity
         if v is None:
             raise ValueError("second-order rows (lag_tau > 0) need SafetyContext.velocity")
-        nb_v = ctx.neighbour_velocities
-        if nb_v is None:
-            if len(ctx.neighbours):
-                raise ValueError(
-                    "second-order rows (lag_tau > 0) need SafetyContext.neighbour_velocities: "
-                    "each pair row is one UAV's half of a condition on the relative velocity"
-                )
-            nb_v = np.zeros_like(ctx.neighbours)
+        nb_v = _neighbour_velocities(ctx)
         n = len(h)
         dv = np.tile(v, (n, 1))
         curv = np.zeros(n)
@@ -646,20 +657,13 @@ class RowBuilder:
             gamma1[sl], share[sl] = g1, 0.5
         grad = -A
         if sizes[1]:
-            if self.obstacle_model == "point":
-                curv[obs] = 2.0 * (v @ v)
-            else:  # H = 2 diag(axes outside the slab) outside, -2 n n' inside the box
-                sign = np.where(h[obs] + cbf.obstacle_clearance**2 >= 0.0, 2.0, -2.0)
-                curv[obs] = sign * ((grad[obs] != 0.0) @ (v * v))
+            curv[obs] = self._obstacle_curvature(v, grad[obs], h[obs])
             gamma1[obs] = cbf.gamma_obstacle
         if sizes[2]:
-            c, s_ = math.cos(ctx.target_heading), math.sin(ctx.target_heading)
-            rot = np.array(((c, s_, 0.0), (-s_, c, 0.0), (0.0, 0.0, 1.0)))  # world -> car frame
             dv[tgt] = v - ctx.target_velocity
-            g_l, dv_l = rot @ grad[tgt][0], rot @ dv[tgt][0]
-            active = np.abs(g_l) > 1e-12 * max(float(np.abs(g_l).max()), 1e-300)
-            sign = 2.0 if h[tgt][0] + cbf.obstacle_clearance**2 >= 0.0 else -2.0
-            curv[tgt] = sign * float(active @ (dv_l * dv_l))
+            curv[tgt] = self._target_curvature(
+                ctx.target_heading, grad[tgt][0], dv[tgt][0], h[tgt][0]
+            )
             gamma1[tgt] = cbf.gamma_obstacle
         gamma1[flr] = cbf.gamma_z  # H = 0
         sel = kind < OCCLUSION
@@ -668,6 +672,39 @@ class RowBuilder:
         out = b.copy()
         out[sel] = (second - margin)[sel]
         return out
+
+    def _obstacle_curvature(self, v: np.ndarray, grad: np.ndarray, h: np.ndarray) -> np.ndarray:
+        """v' H v of the obstacle rows (box or point barrier, not in the paper), grad = grad h."""
+        if self.obstacle_model == "point":
+            return 2.0 * (v @ v)
+        # H = 2 diag(axes outside the slab) outside, -2 n n' inside the box
+        sign = np.where(h + self.cbf.obstacle_clearance**2 >= 0.0, 2.0, -2.0)
+        return sign * ((grad != 0.0) @ (v * v))
+
+    def _target_curvature(
+        self, heading: float, grad: np.ndarray, dv: np.ndarray, h: float
+    ) -> float:
+        """dv' H dv of the target's box row, in the car's frame (its box is axis-aligned there);
+        dv the velocity relative to the car."""
+        c, s_ = math.cos(heading), math.sin(heading)
+        rot = np.array(((c, s_, 0.0), (-s_, c, 0.0), (0.0, 0.0, 1.0)))  # world -> car frame
+        g_l, dv_l = rot @ grad, rot @ dv
+        active = np.abs(g_l) > 1e-12 * max(float(np.abs(g_l).max()), 1e-300)
+        sign = 2.0 if h + self.cbf.obstacle_clearance**2 >= 0.0 else -2.0
+        return sign * float(active @ (dv_l * dv_l))
+
+
+def _neighbour_velocities(ctx: SafetyContext) -> np.ndarray:
+    """The neighbours' velocities (zeros without neighbours); the pair rows need them."""
+    nb_v = ctx.neighbour_velocities
+    if nb_v is None:
+        if len(ctx.neighbours):
+            raise ValueError(
+                "second-order rows (lag_tau > 0) need SafetyContext.neighbour_velocities: "
+                "each pair row is one UAV's half of a condition on the relative velocity"
+            )
+        nb_v = np.zeros_like(ctx.neighbours)
+    return nb_v
 
 
 _NONE = (_EMPTY3, np.zeros(0), None, np.zeros(0, int))

@@ -8,10 +8,10 @@ the expert and the RL shield certify with ``R_s + r_s_margin`` and ``R_c - r_c_m
 from __future__ import annotations
 
 import dataclasses
-import math
 from dataclasses import dataclass
 
-from uavtrack_env.config import CBFConfig
+from uavtrack_env.safety.config import CBFConfig
+from uavtrack_env.validation import Fields as _Fields
 
 
 @dataclass(frozen=True)
@@ -31,14 +31,33 @@ class ShieldMargins:
     surface_gap: float = 0.1
     """Required gap (m) between the UAV sphere and an obstacle/the ground at the barrier's edge:
     ``obstacle_clearance - uav_radius`` and ``z_min - uav_radius`` must be at least this."""
+    target_stale_after: float = 0.25
+    """After this long (s) without a detection the car's box also grows at target_speed_max."""
+    target_speed_max: float = 3.0
+    """Bound (m/s) on the car's speed, for the box of an undetected car (`onboard.car_box`)."""
+    message_timeout: float = 0.5
+    """A team-mate not heard for this long (s) is forgotten (it collided, was parked or left
+    R_c); until then its rows stay, on its last message and reachable set (`NeighbourTable`)."""
 
     def __post_init__(self) -> None:
-        for f in dataclasses.fields(self):
-            value = getattr(self, f.name)
-            if not (isinstance(value, int | float) and math.isfinite(value) and value >= 0):
-                raise ValueError(f"{f.name} must be a finite number >= 0, got {value!r}")
+        f = _Fields(self)
+        for f_name in (
+            "r_s_margin",
+            "r_c_margin",
+            "target_margin",
+            "target_sigmas",
+            "target_margin_max",
+            "surface_gap",
+            "target_stale_after",
+            "target_speed_max",
+        ):
+            f.number(f_name, lo=0)
+        f.number("message_timeout", lo=0, lo_open=True)
         if self.target_margin_max < self.target_margin:
-            raise ValueError("target_margin_max must be >= target_margin")
+            raise ValueError(
+                f"ShieldMargins.target_margin_max must be >= target_margin = {self.target_margin}"
+                f", got {self.target_margin_max}"
+            )
 
 
 def shield_cbf(base: CBFConfig, margins: ShieldMargins) -> CBFConfig:

@@ -52,8 +52,10 @@ import daqp
 import numpy as np
 import qpsolvers
 
-from uavtrack_env.config import DT, CBFConfig, ControlLimits
+from uavtrack_env.config import DT, ControlLimits
 from uavtrack_env.safety.cbf import CONNECT, CBFRows, RowBuilder, SafetyContext
+from uavtrack_env.safety.config import CBFConfig
+from uavtrack_env.validation import Fields as _Fields
 
 SOLVERS = ("daqp", "proxqp", "daqp-direct")
 """QP backends: 'daqp' and 'proxqp' through `qpsolvers.solve_qp`; 'daqp-direct' (the default)
@@ -84,8 +86,6 @@ class ShieldOptions:
     """Add a hard row keeping the UAV out of the (moving, oriented) target car box."""
     occlusion: bool = True
     """Include the soft occlusion rows (45)."""
-    dt: float = DT
-    """Control period (s) of the forward-Euler plant, for the connectivity margin (80 Hz)."""
     connectivity_margin: float | None = None
     """Per-UAV margin on (34) in h-dot units; None: 2.1 dt alpha_v^2 (5 % over the Euler loss)."""
     soft_penalty: float = 1e3
@@ -108,18 +108,18 @@ class ShieldOptions:
     (`SafetyContext.velocity` required). 0: the paper's integrator (3)."""
 
     def __post_init__(self) -> None:
-        if self.obstacle_model not in ("box", "point"):
-            raise ValueError(
-                f"obstacle_model must be 'box' or 'point', got {self.obstacle_model!r}"
-            )
-        if not self.dt > 0:
-            raise ValueError(f"dt must be > 0, got {self.dt}")
-        if self.connectivity_margin is not None and self.connectivity_margin < 0:
-            raise ValueError("connectivity_margin must be >= 0")
-        if not (self.soft_penalty > 0 and self.hard_penalty > 0):
-            raise ValueError("penalties must be > 0")
-        if self.slack_regularization < 0 or self.norm_cuts < 0 or self.tol < 0:
-            raise ValueError("slack_regularization, norm_cuts and tol must be >= 0")
+        f = _Fields(self)
+        f.choice("obstacle_model", ("box", "point"))
+        for name in ("target_as_obstacle", "occlusion", "prune"):
+            f.flag(name)
+        f.number("connectivity_margin", lo=0, none_means="2.1 dt alpha_v^2")
+        f.number("soft_penalty", lo=0, lo_open=True)
+        f.number("hard_penalty", lo=0, lo_open=True)
+        f.number("slack_regularization", lo=0)
+        f.integer("norm_cuts", lo=0)
+        f.number("tol", lo=0)
+        f.number("verify_tol", lo=0)
+        f.number("lag_tau", lo=0)
 
 
 @dataclass
@@ -193,10 +193,11 @@ class SafetyFilter:
             raise ValueError(f"limits must be a ControlLimits, got {type(limits).__name__}")
         if solver not in SOLVERS:
             raise ValueError(f"solver must be one of {SOLVERS}, got {solver!r}")
+        cbf = cbf if cbf.resolved else cbf.resolve()
         check_eq28(cbf)
         self.cbf, self.limits, self.solver = cbf, limits, solver
         self.options = ShieldOptions(**options)
-        dt = self.options.dt
+        dt = DT
         for name, rate in (
             ("gamma_s / 2", 0.5 * cbf.gamma_s),
             ("gamma_c / 2", 0.5 * cbf.gamma_c),
@@ -259,37 +260,52 @@ class SafetyFilter:
         only for malformed input.
         """
         t0 = time.perf_counter()
-        u = np.asarray(u_nominal, dtype=float)
-        if u.shape != (4,):
-            raise ValueError(
-                f"u_nominal must have shape (4,) [v_cx, v_cy, v_cz, w_cy], got {u.shape}"
-            )
-        if not math.isfinite(u.sum()):
-            raise ValueError(f"u_nominal must be finite, got {u}")
-        if not isinstance(ctx, SafetyContext):
-            raise ValueError(f"ctx must be a SafetyContext, got {type(ctx).__name__}")
+        u = _checked_nominal(u_nominal, ctx)
         if rows is None:
             rows = self._rows(ctx)
         vx, vy, vz, wn = u.tolist()
-        c, s = math.cos(ctx.yaw), math.sin(ctx.yaw)
         w = min(max(wn, -self.w_max), self.w_max)
+        in_bounds = self._within_bounds(vx, vy, vz)
+        if in_bounds and w == wn and self._satisfies_rows(rows, ctx.yaw, vx, vy, vz):
+            return u, ShieldReport(
+                "nominal", False, 0.0, 0.0, [], time_us=(time.perf_counter() - t0) * 1e6,
+                rows=rows, neighbour_ids=ctx.neighbour_ids,
+            )  # fmt: skip
+
+        An, bn, soft, kept = self._qp_rows(rows, ctx.yaw)
+        v, status, solver, calls = self._safe_velocity(u[:3], in_bounds, An, bn, soft)
+        u_safe = np.array((v[0], v[1], v[2], w))
+        if not math.isfinite(u_safe.sum()):  # defensive: never hand out NaN
+            u_safe = np.array((0.0, 0.0, 0.0, w))
+            status, solver = "fallback", "brake"
+        return u_safe, self._report(
+            status, u, u_safe, rows, ctx, t0, solver, calls, An, bn, soft, kept
+        )
+
+    def _within_bounds(self, vx: float, vy: float, vz: float) -> bool:
+        """The velocity inside Table II's box and the speed ball alpha_v."""
         vm = self.v_max
-        in_bounds = (
+        return (
             abs(vx) <= vm
             and abs(vy) <= vm
             and abs(vz) <= vm
             and vx * vx + vy * vy + vz * vz <= self.alpha_v**2
         )
-        if in_bounds and w == wn:
-            V = np.array((s * vx + c * vz, -c * vx + s * vz, -vy))  # cam_to_world_vec
-            if rows.A.shape[0] == 0 or (rows.A @ V - rows.b <= self.options.tol).all():
-                return u, ShieldReport(
-                    "nominal", False, 0.0, 0.0, [], time_us=(time.perf_counter() - t0) * 1e6,
-                    rows=rows, neighbour_ids=ctx.neighbour_ids,
-                )  # fmt: skip
 
-        # Rows in camera coordinates (A V^g = A R v_c), normalised to unit normals.
-        Ac, norms = _in_camera_frame(rows.A, ctx.yaw)
+    def _satisfies_rows(self, rows: CBFRows, yaw: float, vx: float, vy: float, vz: float) -> bool:
+        """The camera-frame velocity, in the global frame, meets every row A V^g <= b (47)
+        within `ShieldOptions.tol`."""
+        c, s = math.cos(yaw), math.sin(yaw)
+        V = np.array((s * vx + c * vz, -c * vx + s * vz, -vy))  # cam_to_world_vec
+        return rows.A.shape[0] == 0 or bool((rows.A @ V - rows.b <= self.options.tol).all())
+
+    def _qp_rows(
+        self, rows: CBFRows, yaw: float
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """The rows of the QP in camera coordinates (A V^g = A R v_c), normalised to unit normals:
+        An, bn, which of them are soft, and their indices in ``rows``. Zero rows that hold are
+        dropped, and with `ShieldOptions.prune` those the speed ball implies."""
+        Ac, norms = _in_camera_frame(rows.A, yaw)
         zero = norms < 1e-12
         scale = np.where(zero, 1.0, norms)
         bn = rows.b / scale
@@ -300,8 +316,14 @@ class SafetyFilter:
         An = Ac[kept] / scale[kept, None]
         bn = bn[kept]
         soft = rows.kind[kept] >= CONNECT
+        return An, bn, soft, kept
 
-        v_hat = u[:3]
+    def _safe_velocity(
+        self, v_hat: np.ndarray, in_bounds: bool, An: np.ndarray, bn: np.ndarray, soft: np.ndarray
+    ) -> tuple[np.ndarray, str, str, int]:
+        """The velocity of the QP (47): the closed-form projection onto Table II's bounds if it
+        meets every row, else the layered QPs (a numerical failure brakes). Velocity, status,
+        solver, QP calls."""
         status, solver, calls = "optimal", "closed-form", 0
         v = v_hat if in_bounds else self._project_bounds(v_hat)
         if v is None or (len(bn) and not (An @ v - bn <= self.options.tol).all()):
@@ -309,13 +331,7 @@ class SafetyFilter:
                 v, status, solver, calls = self._solve_layers(v_hat, An, bn, soft)
             except Exception:  # never let a numerical failure take the UAV down: brake
                 v, status, solver, calls = np.zeros(3), "fallback", "brake", 0
-        u_safe = np.array((v[0], v[1], v[2], w))
-        if not math.isfinite(u_safe.sum()):  # defensive: never hand out NaN
-            u_safe = np.array((0.0, 0.0, 0.0, w))
-            status, solver = "fallback", "brake"
-        return u_safe, self._report(
-            status, u, u_safe, rows, ctx, t0, solver, calls, An, bn, soft, kept
-        )
+        return v, status, solver, calls
 
     # ----------------------------------------------------------------- layers
     def _project_bounds(self, v: np.ndarray) -> np.ndarray | None:
@@ -460,3 +476,16 @@ class SafetyFilter:
             rows=rows,
             neighbour_ids=ctx.neighbour_ids,
         )
+
+
+def _checked_nominal(u_nominal: np.ndarray, ctx: SafetyContext) -> np.ndarray:
+    """``u_nominal`` as a float array; ValueError unless it is a finite (4,) action and ``ctx``
+    a `SafetyContext`."""
+    u = np.asarray(u_nominal, dtype=float)
+    if u.shape != (4,):
+        raise ValueError(f"u_nominal must have shape (4,) [v_cx, v_cy, v_cz, w_cy], got {u.shape}")
+    if not math.isfinite(u.sum()):
+        raise ValueError(f"u_nominal must be finite, got {u}")
+    if not isinstance(ctx, SafetyContext):
+        raise ValueError(f"ctx must be a SafetyContext, got {type(ctx).__name__}")
+    return u

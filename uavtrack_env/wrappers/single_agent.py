@@ -14,6 +14,7 @@ import gymnasium
 import numpy as np
 
 from uavtrack_env.expert import ExpertPolicy
+from uavtrack_env.presets import ExpertConfig
 
 OthersPolicy = Callable[[dict[str, np.ndarray], dict[str, dict]], dict[str, Any]]
 """``(obs of the other live agents, infos of all live agents) -> {other agent: action}``."""
@@ -26,8 +27,8 @@ class SingleAgentView(gymnasium.Env):
     """A gymnasium.Env for ``agent`` of a uavtrack ParallelEnv (raw or `CBFShield`-wrapped).
 
     * Spaces: exactly the wrapped env's ``observation_space(agent)`` and ``action_space(agent)``.
-    * ``others``: ``"expert"`` (`ExpertPolicy.from_env`, rebuilt only when the references change,
-      reset every episode), ``"hover"`` (zero actions) or a callable
+    * ``others``: ``"expert"`` (`ExpertPolicy.from_env` with ``expert_config``, handed the new
+      layout at every reset), ``"hover"`` (zero actions) or a callable
       ``(obs_dict, infos) -> {agent: action}`` that receives the other live agents'
       observations and all live agents' infos; a ``reset()`` method, if any, is called after
       each env reset.
@@ -43,7 +44,7 @@ class SingleAgentView(gymnasium.Env):
         env: Any,
         agent: str = "uav_0",
         others: str | OthersPolicy = "expert",
-        **expert_kwargs: Any,
+        expert_config: ExpertConfig | str | None = None,
     ) -> None:
         if agent not in env.possible_agents:
             raise ValueError(f"unknown agent {agent!r}; agents are {env.possible_agents}")
@@ -52,18 +53,17 @@ class SingleAgentView(gymnasium.Env):
                 raise ValueError(f"others must be 'expert', 'hover' or a callable, got {others!r}")
         elif not callable(others):
             raise ValueError(f"others must be 'expert', 'hover' or a callable, got {others!r}")
-        if expert_kwargs and others != "expert":
-            raise TypeError(f"expert options {sorted(expert_kwargs)} given with others={others!r}")
+        if expert_config is not None and others != "expert":
+            raise TypeError(f"expert_config given with others={others!r}")
         self.env = env
         self.agent = agent
         self.others = others
-        self.expert_kwargs = expert_kwargs
+        self.expert_config = expert_config
         self.observation_space = env.observation_space(agent)
         self.action_space = env.action_space(agent)
         self.metadata = dict(env.metadata)
         self.render_mode = env.render_mode
         self.expert: ExpertPolicy | None = None
-        self._expert_refs: bytes | None = None
         self._obs: dict[str, np.ndarray] = {}
         self._infos: dict[str, dict] = {}
         self._done = True
@@ -81,18 +81,12 @@ class SingleAgentView(gymnasium.Env):
         return self._obs[self.agent], self._infos[self.agent]
 
     def _reset_expert(self) -> None:
-        """Build the expert for this layout (NMPCs are rebuilt only if the references changed)."""
-        layout = self.env.unwrapped.layout
-        refs = np.ascontiguousarray(layout.references).tobytes()
-        if self.expert is None or refs != self._expert_refs:
-            self.expert = ExpertPolicy.from_env(self.env.unwrapped, **self.expert_kwargs)
-            self._expert_refs = refs
-        else:  # same references: only the obstacle map changes with the layout
-            self.expert.obstacle_centers = np.asarray(layout.obstacle_centers, float).reshape(-1, 3)
-            self.expert.obstacle_half_extents = np.asarray(
-                layout.obstacle_half_extents, float
-            ).reshape(-1, 3)
-        self.expert.reset()
+        """Build the expert once; every reset hands it the new layout."""
+        raw = self.env.unwrapped
+        if self.expert is None:
+            self.expert = ExpertPolicy.from_env(raw, self.expert_config)
+        else:
+            self.expert.reset(raw.layout)
 
     def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict]:
         if self._done:
@@ -101,7 +95,7 @@ class SingleAgentView(gymnasium.Env):
         others = {a: o for a, o in self._obs.items() if a != self.agent and a in live}
         # The env's validation of this agent's action first, so a bad action changes nothing
         # (not even the team-mates' estimators).
-        self.env.unwrapped._validate({**{a: _HOVER for a in others}, self.agent: action})
+        self.env.unwrapped.validate_actions({**{a: _HOVER for a in others}, self.agent: action})
         actions = dict(self._others_actions(others)) if others else {}
         actions[self.agent] = action
         obs, rewards, terms, truncs, infos = self.env.step(actions)

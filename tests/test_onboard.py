@@ -1,0 +1,172 @@
+"""One onboard stack: the expert's and the shield's certify agree; a new layout reaches every
+stateful part of the expert, the shield and the single-agent view."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from uavtrack_env import uavtrack_v0
+from uavtrack_env.expert import ExpertPolicy
+from uavtrack_env.wrappers import CBFShield, SingleAgentView
+
+WORLD = {
+    "scenario": "random",
+    "n_uavs": 4,
+    "max_cycles": 60,
+    "dynamics": {"model": "lag"},
+    "detector": {"dropout_prob": 0.2},
+    "comms": {"drop_prob": 0.1},
+    "terminate_on_collision": "agent",
+}
+
+
+@pytest.mark.filterwarnings("ignore:CBFShield")
+@pytest.mark.parametrize("preset", ["tuned", "paper"])
+def test_expert_and_shield_certify_alike(preset):
+    """Fed the same info stream, the expert's and the shield's stacks build identical rows and
+    return identical safe actions for the same (hostile) nominal commands."""
+    env = uavtrack_v0.parallel_env(**WORLD)
+    shield = CBFShield(env, preset)
+    _, infos = shield.reset(seed=7)
+    expert = ExpertPolicy.from_env(env, preset)
+    rng = np.random.default_rng(0)
+    compared = 0
+    while env.agents:
+        for agent, info in infos.items():
+            mine, theirs = expert.onboard[agent], shield.onboard[agent]
+            assert mine is not theirs
+            mine.observe(info)  # the shield observed the same info in reset/step
+            rows_e, rows_s = mine.rows(), theirs.rows()
+            np.testing.assert_array_equal(rows_e.A, rows_s.A)
+            np.testing.assert_array_equal(rows_e.b, rows_s.b)
+            np.testing.assert_array_equal(rows_e.h, rows_s.h)
+            u_nominal = rng.uniform(-1.5, 1.5, 4) * env.config.limits.scale
+            u_e, rep_e = mine.certify(u_nominal)
+            u_s, rep_s = theirs.certify(u_nominal)
+            np.testing.assert_array_equal(u_e, u_s)
+            assert rep_e.status == rep_s.status and rep_e.active_rows == rep_s.active_rows
+            compared += rep_e.active
+        actions = {a: rng.uniform(-1, 1, 4).astype(np.float32) for a in env.agents}
+        infos = shield.step(actions)[4]
+    assert compared > 20  # the nominals were corrected, so the QPs were compared too
+    env.close()
+
+
+def _assert_knows_layout(expert: ExpertPolicy, layout) -> None:
+    for i, agent in enumerate(expert.agent_names):
+        onboard, planner = expert.onboard[agent], expert.planners[agent]
+        np.testing.assert_array_equal(onboard.obstacle_centers, layout.obstacle_centers)
+        np.testing.assert_array_equal(onboard.obstacle_half_extents, layout.obstacle_half_extents)
+        np.testing.assert_array_equal(planner.viewpoint.centers, layout.obstacle_centers)
+        np.testing.assert_array_equal(planner.viewpoint.half_extents, layout.obstacle_half_extents)
+        np.testing.assert_array_equal(planner.reference, layout.references[i])
+        assert onboard.estimate is None and planner.last_u.tolist() == [0.0] * 4
+
+
+def test_a_new_layout_reaches_every_stateful_part():
+    env = uavtrack_v0.parallel_env(scenario="random", max_cycles=30)
+    obs, infos = env.reset(seed=1)
+    expert = ExpertPolicy.from_env(env)
+    first = env.layout
+    for _ in range(5):
+        obs, _, _, _, infos = env.step(expert(obs, infos))
+    assert any(expert.onboard[a].estimate is not None for a in env.agents)
+    env.reset(seed=2)
+    assert env.layout.obstacle_centers.shape != first.obstacle_centers.shape or not np.array_equal(
+        env.layout.obstacle_centers, first.obstacle_centers
+    )
+    expert.reset(env.layout)
+    _assert_knows_layout(expert, env.layout)
+    env.close()
+
+
+def test_single_agent_view_hands_the_expert_each_new_map():
+    """Regression: the team-mates' viewpoint planners must not keep the first world's boxes."""
+    env = SingleAgentView(uavtrack_v0.parallel_env(scenario="random", max_cycles=20))
+    env.reset(seed=1)
+    maps = [env.env.unwrapped.layout]
+    for seed in (2, 3):
+        env.reset(seed=seed)
+        maps.append(env.env.unwrapped.layout)
+        _assert_knows_layout(env.expert, env.env.unwrapped.layout)
+    assert not np.array_equal(maps[0].obstacle_centers, maps[1].obstacle_centers)
+    env.close()
+
+
+def test_shield_takes_each_new_map():
+    env = CBFShield(uavtrack_v0.parallel_env(scenario="random", max_cycles=20))
+    for seed in (1, 2):
+        env.reset(seed=seed)
+        layout = env.unwrapped.layout
+        for agent in env.possible_agents:
+            ctx = env.context(agent)
+            np.testing.assert_array_equal(ctx.obstacle_centers, layout.obstacle_centers)
+            np.testing.assert_array_equal(ctx.obstacle_half_extents, layout.obstacle_half_extents)
+    env.close()
+
+
+def test_expert_acts_only_after_a_layout():
+    env = uavtrack_v0.parallel_env(scenario="A", max_cycles=5)
+    _, infos = env.reset(seed=0)
+    expert = ExpertPolicy(env.possible_agents, env.config)
+    with pytest.raises(RuntimeError, match="reset"):
+        expert.act("uav_0", infos["uav_0"])
+    expert.reset(env.layout)
+    assert expert.act("uav_0", infos["uav_0"]).shape == (4,)
+    env.close()
+
+
+@pytest.mark.filterwarnings("ignore:CBFShield")
+@pytest.mark.parametrize("dynamics", ["integrator", "lag"])
+def test_lost_messages_keep_each_teammate_inside_its_reachable_set(dynamics):
+    """With half the messages lost, every team-mate stays known, and its true position and
+    velocity lie within the belief's radii (the reachable-set bound of `NeighbourTable`)."""
+    env = CBFShield(
+        uavtrack_v0.parallel_env(
+            scenario="random",
+            n_uavs=4,
+            max_cycles=120,
+            dynamics={"model": dynamics},
+            comms={"drop_prob": 0.5},
+        )
+    )
+    _, infos = env.reset(seed=4)
+    rng = np.random.default_rng(1)
+    stale, moving = 0, 0
+    while env.agents:
+        for agent in env.agents:
+            belief = env.onboard[agent].belief
+            assert len(belief.names) == 3  # nobody is forgotten for a lost message
+            for k, name in enumerate(belief.names):
+                truth = infos[name]["own"]
+                err = np.linalg.norm(truth["position"] - belief.positions[k])
+                assert err <= belief.position_radius[k] + 1e-9, (name, belief.ages[k], err)
+                if dynamics == "lag":
+                    dv = np.linalg.norm(truth["velocity"] - belief.velocities[k])
+                    assert dv <= belief.velocity_radius[k] + 1e-9
+                    moving += belief.ages[k] > 0 and np.abs(belief.velocities[k]).max() > 0.5
+                stale += belief.ages[k] > 0
+        actions = {a: rng.uniform(-1, 1, 4).astype(np.float32) for a in env.agents}
+        infos = env.step(actions)[4]
+    assert stale > 100  # many beliefs came from old messages
+    if dynamics == "lag":
+        assert moving > 20  # a missed message does not zero the velocity
+    env.close()
+
+
+def test_a_silent_teammate_is_forgotten_after_the_timeout():
+    from uavtrack_env.onboard import NeighbourTable
+
+    table = NeighbourTable(speed_bound=10.0, timeout=5)
+    table.reset(["a", "b", "c"], np.array([[0, 0, 1], [3, 0, 1], [40, 0, 1]]), "a", r_c=20.0)
+    assert table.belief().names == ("b",)  # c starts beyond R_c
+    for step in range(1, 6):
+        table.update({})
+        belief = table.belief()
+        if step < 5:
+            assert belief.names == ("b",) and belief.ages[0] == step
+            assert belief.position_radius[0] == pytest.approx(10.0 * step / 80.0)
+    assert table.belief().names == ()
+    table.update({"c": np.array([19.0, 0.0, 1.0])})
+    assert table.belief().names == ("c",) and table.belief().position_radius[0] == 0.0
