@@ -338,6 +338,7 @@ BAD = [
     case(ShieldOptions, "tol", NAN, V, rf"tol must be {NONNEG}"),
     case(ShieldOptions, "verify_tol", -1.0, V, rf"verify_tol must be {NONNEG}"),
     case(ShieldOptions, "lag_tau", INF, V, rf"lag_tau must be {NONNEG}"),
+    case(ShieldOptions, "accel_bound", -1.0, V, rf"accel_bound must be {NONNEG}"),
     # ------------------------------------------------------------------ ShieldMargins
     case(ShieldMargins, "r_s_margin", NAN, V, rf"r_s_margin must be {NONNEG}, got nan"),
     case(ShieldMargins, "r_c_margin", -0.05, V, rf"r_c_margin must be {NONNEG}"),

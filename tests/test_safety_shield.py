@@ -208,6 +208,44 @@ def test_unsafe_state_and_solver_failure_fall_back_without_raising(monkeypatch, 
     assert np.array_equal(out, [0.0, 0.0, 0.0, 0.1])  # brake, keep the yaw rate
 
 
+@pytest.mark.parametrize("solver", BACKENDS)
+@pytest.mark.parametrize("rival", ["target", "uav"])
+def test_fallback_never_trades_the_floor_for_an_estimate_or_a_teammate(solver, rival):
+    """0.1 m above the floor row's level, a (diverged) car estimate or a team-mate right above
+    demands a dive: the fallback keeps the floor row (V_z >= -gamma_z (z - z_min)), gives the
+    rival up and says so."""
+    f = SafetyFilter(solver=solver)
+    above = {"target": {"target_position": [0.0, 0.0, 1.4], "target_heading": 0.0},
+             "uav": {"neighbours": [[0.0, 0.0, 1.5]]}}[rival]  # fmt: skip
+    ctx = ctx_with(position=[0.0, 0.0, 0.6], **above)
+    out, rep = f.certify(cam_u([1.0, 0.0, -8.0], ctx.yaw), ctx)  # a dive, as the rival asks
+    V = global_v(out, ctx.yaw)
+    floor_rate = f.cbf.gamma_z * (0.6 - f.cbf.z_min)
+    assert rep.status == "fallback" and np.isfinite(out).all()
+    assert V[2] >= -floor_rate - 1e-7  # the floor row holds
+    assert rep.gave_up and all(name.split(":")[0] == rival for name in rep.gave_up), rep.gave_up
+    assert "floor" not in rep.gave_up
+
+
+@pytest.mark.parametrize("solver", BACKENDS)
+def test_fallback_keeps_the_teammates_rows_over_the_cars(solver):
+    """A team-mate 2.2 m above and a car estimate around the UAV whose nearest face is its top: the
+    car's row is given up first, the pair row (25) holds."""
+    f = SafetyFilter(solver=solver)
+    ctx = ctx_with(
+        position=[0.0, 0.0, 5.0],
+        neighbours=[[0.0, 0.0, 7.2]],
+        target_position=[-1.0, 0.0, 5.0],
+        target_heading=0.0,
+    )
+    out, rep = f.certify(cam_u([0.0, 0.0, 0.0], ctx.yaw), ctx)
+    V = global_v(out, ctx.yaw)
+    h_pair = 2.2**2 - f.cbf.r_s**2
+    assert rep.status == "fallback"
+    assert 2 * 2.2 * V[2] <= 0.5 * f.cbf.gamma_s * h_pair + 1e-7  # row (25) holds
+    assert rep.gave_up == ["target"]
+
+
 @pytest.mark.parametrize(
     "u", [np.array([np.nan, 0, 0, 0]), np.zeros(3), np.zeros((4, 1)), [0, 0, np.inf, 0]]
 )

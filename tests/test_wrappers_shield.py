@@ -104,17 +104,23 @@ def run_episodes(
     a_max: float | None = None,
     lag_aware: bool = True,
     episodes: int = EPISODES,
+    drop: float = 0.0,
 ) -> dict:
     """Violation counts over seeded random worlds (every step, every agent), and with the shield
     the least barrier value of each `EXACT_HARD` family over every certify call. ``a_max``: run
     under the 'lag' plant with that acceleration bound (None: the integrator); ``lag_aware``:
-    the shield's second-order rows under the lag (False: the paper's first-order rows)."""
+    the shield's second-order rows under the lag (False: the paper's first-order rows);
+    ``drop``: the probability that a message is lost."""
     totals = {"collision": 0, "disconnection": 0, "active": 0, "agent_steps": 0, "statuses": {}}
     totals["min_h"] = dict.fromkeys(EXACT_HARD, math.inf)
     dynamics = {} if a_max is None else {"dynamics": {"model": "lag", "a_max": a_max}}
     for ep in range(episodes):
         raw = uavtrack_v0.parallel_env(
-            scenario="random", max_cycles=STEPS, terminate_on_collision="agent", **dynamics
+            scenario="random",
+            max_cycles=STEPS,
+            terminate_on_collision="agent",
+            comms={"drop_prob": drop},
+            **dynamics,
         )
         if shield:
             with warnings.catch_warnings():
@@ -198,6 +204,18 @@ def test_lag_shield_prevents_collisions_with_the_acceleration_bound():
     command brakes less): still no collision and no broken link, thanks to the margins."""
     out = run_episodes("seeker", True, a_max=6.0, episodes=10)
     assert out["collision"] == 0 and out["disconnection"] == 0, out
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("a_max", [None, 6.0], ids=["integrator", "lag"])
+def test_lost_messages_break_neither_collision_nor_connectivity(a_max):
+    """Half the messages lost: UAVs steered at each other, at obstacles, the car, the ground
+    and away from the team still neither collide nor disconnect (the lost sender's rows stay,
+    on its reachable set)."""
+    out = run_episodes("seeker", True, a_max=a_max, episodes=10, drop=0.5)
+    assert out["collision"] == 0 and out["disconnection"] == 0, out
+    free = run_episodes("seeker", False, a_max=a_max, episodes=10, drop=0.5)
+    assert free["collision"] > 0 and free["disconnection"] > 0, free
 
 
 # ---------------------------------------------------------------- unchanged / minimal action
@@ -418,3 +436,34 @@ def test_step_before_reset_raises(make_env):
     env = make_env(scenario="A")
     with pytest.raises(RuntimeError, match="reset"):
         env.step({"uav_0": np.zeros(4)})
+
+
+# ------------------------------------------------------------------------------- telemetry
+def test_telemetry_and_the_envs_own_signals(make_env):
+    """A 1e30 action is clipped and counted as the bare env would; the info says what the
+    policy proposed, what was sent, the least barrier per family and, at the end, a summary."""
+    env = make_env(scenario="A", max_cycles=6)
+    env.reset(seed=0)
+    huge = np.array([1e30, 0.0, 0.0, 0.0])
+    steps = 0
+    while env.agents:
+        steps += 1
+        _o, _r, _t, _tr, infos = env.step({a: huge for a in env.agents})
+        for info in infos.values():
+            rep = info["shield"]
+            assert info["action_clipped"] and info["n_clipped_actions"] == steps
+            np.testing.assert_array_equal(rep["proposed"], [1.0, 0.0, 0.0, 0.0])
+            assert rep["action"].shape == (4,) and np.abs(rep["action"]).max() <= 1.0
+            assert {"floor", "uav", "connect"} <= set(rep["min_h"])
+            assert rep["min_h"]["floor"] == pytest.approx(info["own"]["position"][2] - 0.5)
+            assert rep["min_hard_h"] == min(
+                rep["min_h"][k] for k in ("uav", "obstacle", "target", "floor") if k in rep["min_h"]
+            )
+            assert isinstance(rep["gave_up"], list) and rep["status"] in (
+                "nominal", "optimal", "relaxed", "fallback"
+            )  # fmt: skip
+    for info in infos.values():
+        ep = info["shield"]["episode"]
+        assert ep["steps"] == 6 and 0 <= ep["interventions"] <= 6
+        assert ep["intervention_rate"] == pytest.approx(ep["interventions"] / 6)
+        assert ep["mean_correction"] >= 0.0

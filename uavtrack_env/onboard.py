@@ -172,7 +172,8 @@ class OnboardAgent:
     agent's ``info`` after every env reset/step; `rows` and `certify` use the latest observation.
     R_s and R_c come from the world (`EnvConfig.violations.r_s`, `EnvConfig.comms.r_c`) with the
     config's margins; under the env's 'lag' dynamics and ``lag_aware`` the rows are second order
-    (`ShieldOptions.lag_tau` = ``dynamics.tau``).
+    and respect the acceleration bound (`ShieldOptions.lag_tau` = ``dynamics.tau``,
+    ``accel_bound`` = ``dynamics.a_max``). What this guarantees: docs/safety.md.
     """
 
     def __init__(self, name: str, index: int, env_config: EnvConfig, config: ExpertConfig) -> None:
@@ -189,7 +190,8 @@ class OnboardAgent:
         self.cbf = shield_cbf(cbf, margins)
         lag = config.lag_aware and env_config.dynamics.model == "lag"
         lag_tau = env_config.dynamics.tau if lag else 0.0
-        options = dataclasses.replace(config.shield, lag_tau=lag_tau)
+        accel = env_config.dynamics.a_max if lag else 0.0
+        options = dataclasses.replace(config.shield, lag_tau=lag_tau, accel_bound=accel)
         self.filter = SafetyFilter(
             self.cbf, env_config.limits, solver=config.qp_solver, **dataclasses.asdict(options)
         )
@@ -205,6 +207,7 @@ class OnboardAgent:
         self.obstacle_centers = np.zeros((0, 3))
         self.obstacle_half_extents = np.zeros((0, 3))
         self.info: dict | None = None
+        self.belief: NeighbourBelief | None = None
         self._context: SafetyContext | None = None
         self._rows: CBFRows | None = None
 
@@ -221,8 +224,7 @@ class OnboardAgent:
         self._ids = {a: i for i, a in enumerate(agents)}
         self.tracker.reset()
         self.neighbours.reset(agents, layout.uav_positions, self.name, self._r_c)
-        self.belief: NeighbourBelief | None = None
-        self.info, self._context, self._rows = None, None, None
+        self.info, self.belief, self._context, self._rows = None, None, None, None
 
     def observe(self, info: dict) -> Estimate | None:
         """Take this step's ``info`` (measurement, own state, messages); returns the estimate."""
@@ -259,6 +261,8 @@ class OnboardAgent:
             velocity=own["velocity"],
             neighbours=belief.positions,
             neighbour_velocities=belief.velocities if self._lag else None,
+            neighbour_radius=belief.position_radius,
+            neighbour_velocity_radius=belief.velocity_radius if self._lag else None,
             obstacle_centers=self.obstacle_centers,
             obstacle_half_extents=self.obstacle_half_extents,
             target_position=None if est is None else est.target_position,

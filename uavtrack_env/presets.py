@@ -73,11 +73,12 @@ class ExpertConfig:
                 )
         if self.qp_solver not in SOLVERS:
             raise ValueError(f"qp_solver must be one of {SOLVERS}, got {self.qp_solver!r}")
-        if self.shield.lag_tau != 0.0:
-            raise ValueError(
-                "shield.lag_tau is set from the env's dynamics.tau (lag_aware=True); "
-                f"leave it 0, got {self.shield.lag_tau}"
-            )
+        for name, source in (("lag_tau", "tau"), ("accel_bound", "a_max")):
+            if getattr(self.shield, name) != 0.0:
+                raise ValueError(
+                    f"shield.{name} is set from the env's dynamics.{source} (lag_aware=True); "
+                    f"leave it 0, got {getattr(self.shield, name)}"
+                )
 
 
 def expert_config(preset: str | ExpertConfig | None = None, **overrides: Any) -> ExpertConfig:

@@ -101,6 +101,11 @@ class SafetyContext:
     """(3,) own actual global velocity (IMU); needed only by second-order rows (``lag_tau``)."""
     neighbour_velocities: np.ndarray | None = None
     """(k, 3) velocities of `neighbours` (e.g. differenced messages); None: taken as zero."""
+    neighbour_radius: np.ndarray | None = None
+    """(k,) each neighbour is within this distance (m) of `neighbours` (a lost message's
+    reachable set, `onboard.NeighbourTable`); None: exactly there."""
+    neighbour_velocity_radius: np.ndarray | None = None
+    """(k,) each neighbour's velocity is within this (m/s) of `neighbour_velocities`."""
 
     def __post_init__(self) -> None:
         put = object.__setattr__
@@ -143,6 +148,17 @@ class SafetyContext:
                     f"neighbour_velocities {nv.shape} must match neighbours {self.neighbours.shape}"
                 )
             put(self, "neighbour_velocities", nv)
+        k = len(self.neighbours)
+        for name in ("neighbour_radius", "neighbour_velocity_radius"):
+            value = getattr(self, name)
+            if value is not None:
+                arr = np.asarray(value, dtype=float).reshape(-1)
+                if arr.shape != (k,) or not (np.isfinite(arr).all() and (arr >= 0).all()):
+                    raise ValueError(
+                        f"{name} must hold {k} finite distances >= 0 (one per neighbour), "
+                        f"got {value!r}"
+                    )
+                put(self, name, arr)
         if self.neighbour_ids is not None and len(self.neighbour_ids) != len(self.neighbours):
             raise ValueError(
                 f"neighbour_ids has {len(self.neighbour_ids)} entries for "
@@ -262,34 +278,62 @@ def h_occlusion(p: np.ndarray, p_o: np.ndarray, n: np.ndarray, theta_star: float
 # family's gamma and margin fixed by `RowBuilder` (see each docstring). drift None means 0.
 
 
-def collision_rows(p: np.ndarray, neighbours: np.ndarray, cbf: CBFConfig):
+def collision_rows(
+    p: np.ndarray, neighbours: np.ndarray, cbf: CBFConfig, radius: np.ndarray | None = None
+):
     """Rows (25) for j in N_si = {||p - p_j|| <= D_s}: ``-2 (p - p_j)^T V <= gamma_s h / 2``.
 
     The halved rate is the distributed split (23)-(24): UAV j enforces the mirrored half. h is
     convex, so forward Euler keeps ``h(k+1) >= (1 - gamma_s dt) h(k)`` without a margin.
+
+    A neighbour known only within ``radius`` rho of ``neighbours`` (a lost message, not in the
+    paper) gets the row's worst case over that ball: h from the least possible distance,
+    ``(||d|| - rho)^2 - R_s^2``, and the drift ``-2 rho alpha_v`` for the unknown part of
+    ``-2 (p - p_j) . V`` (``||V|| <= alpha_v``). Each UAV's half still bounds its true share,
+    so the two halves sum to (22) whatever either knows.
     """
     d = p - neighbours
     d2 = np.einsum("ij,ij->i", d, d)
-    idx = (d2 <= cbf.d_s**2).nonzero()[0]
-    if len(idx) < len(d2):
-        d, d2 = d.take(idx, 0), d2.take(idx)
-    return -2.0 * d, d2 - cbf.r_s**2, None, idx
+    if radius is None or not radius.any():
+        idx = (d2 <= cbf.d_s**2).nonzero()[0]
+        if len(idx) < len(d2):
+            d, d2 = d.take(idx, 0), d2.take(idx)
+        return -2.0 * d, d2 - cbf.r_s**2, None, idx
+    dist = np.sqrt(d2)
+    idx = (dist - radius <= cbf.d_s).nonzero()[0]
+    d, d2, dist, rho = d[idx], d2[idx], dist[idx], radius[idx]
+    near = np.maximum(dist - rho, 0.0)
+    h = np.where(rho > 0.0, near * near, d2) - cbf.r_s**2
+    return -2.0 * d, h, -2.0 * cbf.alpha_v * rho, idx
 
 
-def connectivity_rows(p: np.ndarray, neighbours: np.ndarray, cbf: CBFConfig):
+def connectivity_rows(
+    p: np.ndarray, neighbours: np.ndarray, cbf: CBFConfig, radius: np.ndarray | None = None
+):
     """Rows (34), j in N_ci = {||p - p_j|| <= R_c}: ``2 (p - p_j)^T V <= gamma_c h / 2 - margin``.
 
     h = R_c^2 - ||p - p_j||^2 is concave, so one forward-Euler step of length dt loses up to
     ``dt^2 ||V_i - V_j||^2 <= 4 dt^2 alpha_v^2`` against its linearisation. Each of the two UAVs
     subtracts ``margin = 2 dt alpha_v^2`` (h-dot units) from its half, so the pair gains
     ``2 margin dt = 4 dt^2 alpha_v^2`` per step, restoring ``h(k+1) >= (1 - gamma_c dt) h(k)``.
+
+    A neighbour known only within ``radius`` rho (a lost message) gets the worst case over that
+    ball, as in `collision_rows`: ``h = R_c^2 - (||d|| + rho)^2`` and drift ``-2 rho alpha_v``;
+    it keeps its row while it may still be within R_c.
     """
     d = p - neighbours
     d2 = np.einsum("ij,ij->i", d, d)
-    idx = (d2 <= cbf.r_c**2).nonzero()[0]
-    if len(idx) < len(d2):
-        d, d2 = d.take(idx, 0), d2.take(idx)
-    return 2.0 * d, cbf.r_c**2 - d2, None, idx
+    if radius is None or not radius.any():
+        idx = (d2 <= cbf.r_c**2).nonzero()[0]
+        if len(idx) < len(d2):
+            d, d2 = d.take(idx, 0), d2.take(idx)
+        return 2.0 * d, cbf.r_c**2 - d2, None, idx
+    dist = np.sqrt(d2)
+    idx = (dist - radius <= cbf.r_c).nonzero()[0]
+    d, d2, dist, rho = d[idx], d2[idx], dist[idx], radius[idx]
+    far = dist + rho
+    h = cbf.r_c**2 - np.where(rho > 0.0, far * far, d2)
+    return 2.0 * d, h, -2.0 * cbf.alpha_v * rho, idx
 
 
 def point_obstacle_rows(p: np.ndarray, centers: np.ndarray, cbf: CBFConfig):
@@ -526,7 +570,10 @@ class RowBuilder:
         target_as_obstacle: bool = True,
         occlusion: bool = True,
         lag_tau: float = 0.0,
+        accel_bound: float = 0.0,
     ) -> None:
+        if not (math.isfinite(accel_bound) and accel_bound >= 0.0):
+            raise ValueError(f"accel_bound must be a finite number >= 0 (m/s^2), got {accel_bound}")
         if not (math.isfinite(lag_tau) and lag_tau >= 0.0):
             raise ValueError(f"lag_tau must be a finite time constant >= 0 (s), got {lag_tau}")
         if obstacle_model not in ("box", "point"):
@@ -541,6 +588,9 @@ class RowBuilder:
         self.target_as_obstacle = target_as_obstacle
         self.occlusion = occlusion
         self.lag_tau = float(lag_tau)
+        # the deceleration a braking row may ask for: 80 % of what the per-axis command box of
+        # `ShieldOptions.accel_bound` guarantees in any direction
+        self.brake_decel = 0.8 * float(accel_bound) / math.sqrt(3.0)
         self._gammas = (
             0.5 * cbf.gamma_s,
             cbf.gamma_obstacle,
@@ -570,8 +620,9 @@ class RowBuilder:
         nb, oc = ctx.neighbours, ctx.obstacle_centers
         has_t = ctx.target_position is not None
         fams = []
+        rho = ctx.neighbour_radius
         if len(nb):
-            fams.append(collision_rows(p, nb, cbf))
+            fams.append(collision_rows(p, nb, cbf, rho))
         else:
             fams.append(_NONE)
         if not len(oc):
@@ -594,7 +645,7 @@ class RowBuilder:
         else:
             fams.append(_NONE)
         fams.append(floor_rows(p, cbf))
-        fams.append(connectivity_rows(p, nb, cbf) if len(nb) else _NONE)
+        fams.append(connectivity_rows(p, nb, cbf, rho) if len(nb) else _NONE)
         if has_t and self.occlusion and len(oc):
             half = ctx.obstacle_half_extents
             q = ctx.target_position
@@ -609,10 +660,11 @@ class RowBuilder:
         h = np.concatenate([f[1] for f in fams])
         index = np.concatenate([f[3] for f in fams])
         drift = np.zeros(len(h))
-        if sizes[2]:  # target row
-            drift[sizes[0] + sizes[1]] = fams[2][2][0]
-        if fams[5][2] is not None:  # moving-target occlusion rows
-            drift[len(h) - sizes[5] :] = fams[5][2]
+        start = 0
+        for fam, size in zip(fams, sizes, strict=True):
+            if fam[2] is not None:  # the target's motion, lost messages' reachable sets
+                drift[start : start + size] = fam[2]
+            start += size
         b = gamma * h + drift - margin
         if self.lag_tau > 0.0:
             b = self._second_order(ctx, A, h, b, margin, kind, index, sizes)
@@ -669,9 +721,106 @@ class RowBuilder:
         sel = kind < OCCLUSION
         hdot = np.einsum("ij,ij->i", grad, dv)
         second = -(grad @ v) + share * (tau * curv + (tau * gamma1 + 1.0) * hdot + gamma1 * h)
+        if ctx.neighbour_radius is not None:
+            for sl, g1 in ((uav, cbf.gamma_s), (con, cbf.gamma_c)):
+                second[sl] -= self._uncertain_pair(ctx, v, A[sl], dv[sl], index[sl], sl is uav, g1)
+        if self.brake_decel > 0.0:
+            second = np.minimum(second, self._braking(ctx, A, h, dv, gamma1, index, sizes))
         out = b.copy()
         out[sel] = (second - margin)[sel]
         return out
+
+    def _braking(
+        self,
+        ctx: SafetyContext,
+        A: np.ndarray,
+        h: np.ndarray,
+        dv: np.ndarray,
+        gamma1: np.ndarray,
+        index: np.ndarray,
+        sizes: tuple[int, ...],
+    ) -> np.ndarray:
+        """Right-hand sides of braking-distance rows on the same A as the collision, floor and
+        connectivity rows (not in the paper): each keeps ``s - w^2 / (2 a) >= 0``.
+
+        s is the distance left before the row's limit (to the obstacle's clearance, the floor,
+        R_s from a team-mate, or R_c), w > 0 the speed closing it along m = A / ||A||, a the
+        deceleration one UAV guarantees (`brake_decel`; a team-mate brakes as much, so a pair
+        has 2a). With v-dot = (u - v) / tau (exact under `ShieldOptions.accel_bound`) and the
+        distance convex along the motion, ``m . u <= m . v + tau a (gamma s_b / w - 1)`` keeps
+        ``s_b = s - w^2 / (2 a_pair)`` from decreasing faster than ``-gamma s_b``: at s_b = 0 it
+        asks for a deceleration of exactly a. Rows not closing (w <= 0) get +inf.
+        """
+        cbf, a, tau = self.cbf, self.brake_decel, self.lag_tau
+        out = np.full(len(h), np.inf)
+        norm = np.sqrt(np.einsum("ij,ij->i", A, A))
+        ends = np.cumsum(sizes)
+        uav, obs, _, flr, con, _ = (slice(e - k, e) for e, k in zip(ends, sizes, strict=True))
+        rho = ctx.neighbour_radius
+        sigma = ctx.neighbour_velocity_radius
+        gap = np.zeros(len(h))
+        pair = np.zeros(len(h), bool)
+        pair[uav] = pair[con] = True
+        standoff = cbf.obstacle_clearance if self.obstacle_model == "box" else cbf.r_s
+        gap[obs] = np.sqrt(np.maximum(h[obs] + standoff**2, 0.0)) - standoff
+        gap[flr] = h[flr]
+        dist = 0.5 * norm
+        gap[uav] = dist[uav] - cbf.r_s
+        gap[con] = cbf.r_c - dist[con]
+        closing = np.einsum("ij,ij->i", A, dv) / np.maximum(norm, 1e-12)
+        for sl in (uav, con):
+            if rho is not None and sl.stop > sl.start:
+                gap[sl] -= rho[index[sl]]
+                if sigma is not None:
+                    closing[sl] += sigma[index[sl]]
+        decel = np.where(pair, 2.0 * a, a)
+        w = closing
+        rows = (w > 1e-9) & (norm > 1e-12)
+        rows[sizes[0] + sizes[1] : sizes[0] + sizes[1] + sizes[2]] = False  # the car: not here
+        rows[len(h) - sizes[5] :] = False  # occlusion rows stay as they are
+        if not rows.any():
+            return out
+        w = w[rows]
+        s_b = gap[rows] - w * w / (2.0 * decel[rows])
+        m_v = np.einsum("ij,j->i", A[rows], ctx.velocity) / norm[rows]
+        beta = m_v + tau * a * (gamma1[rows] * s_b / w - 1.0)
+        out[rows] = norm[rows] * beta
+        return out
+
+    def _uncertain_pair(
+        self,
+        ctx: SafetyContext,
+        v: np.ndarray,
+        A: np.ndarray,
+        dv: np.ndarray,
+        index: np.ndarray,
+        collision: bool,
+        gamma1: float,
+    ) -> np.ndarray:
+        """How much a second-order pair row's b drops for neighbours known only within a ball
+        (position radius rho, velocity radius sigma; their h is already the ball's worst case).
+
+        With d = d_hat + e, ||e|| <= rho and v_j = v_hat + f, ||f|| <= sigma, each term of the
+        row is bounded over the balls: ``-grad h . v`` by ``2 rho ||v||``, the curvature
+        ``+-2 ||dv||^2`` by its value at ``||dv|| -+ sigma``, ``grad h . dv`` by ``2 (rho ||dv||
+        + ||d|| sigma + rho sigma)`` and ``A u`` (``||u|| <= alpha_v``) by ``2 rho alpha_v``.
+        """
+        rho = ctx.neighbour_radius[index]
+        sigma = (
+            np.zeros_like(rho)
+            if ctx.neighbour_velocity_radius is None
+            else ctx.neighbour_velocity_radius[index]
+        )
+        dvn = np.sqrt(np.einsum("ij,ij->i", dv, dv))
+        if collision:  # H = 2I: the curvature is at least 2 (||dv|| - sigma)_+^2
+            curv_drop = 2.0 * (dvn * dvn - np.maximum(dvn - sigma, 0.0) ** 2)
+        else:  # H = -2I: at least -2 (||dv|| + sigma)^2
+            curv_drop = 2.0 * ((dvn + sigma) ** 2 - dvn * dvn)
+        dn = 0.5 * np.sqrt(np.einsum("ij,ij->i", A, A))
+        hdot_drop = 2.0 * (rho * dvn + dn * sigma + rho * sigma)
+        tau = self.lag_tau
+        own = 2.0 * rho * (float(np.linalg.norm(v)) + self.cbf.alpha_v)
+        return own + 0.5 * (tau * curv_drop + (tau * gamma1 + 1.0) * hdot_drop)
 
     def _obstacle_curvature(self, v: np.ndarray, grad: np.ndarray, h: np.ndarray) -> np.ndarray:
         """v' H v of the obstacle rows (box or point barrier, not in the paper), grad = grad h."""

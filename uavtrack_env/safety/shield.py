@@ -22,10 +22,13 @@ Layers, each tried only if the previous one cannot give an answer:
 3. relaxed QP: collision/altitude rows hard, connectivity/occlusion rows with slack under an
    L1 penalty ("relaxed"). Because it only runs after step 2 was infeasible, the slack is exactly
    zero whenever a hard solution exists (no dependence on the penalty weight).
-4. fallback: every row slacked, hard rows weighted `hard_penalty` (a best-effort separating
-   velocity, e.g. when the state is already unsafe); if even that fails (solver error), brake:
-   V = 0 with the clipped yaw rate. Both report status "fallback". certify never raises on a
-   valid input and never returns NaN.
+4. fallbacks by priority: the rows whose geometry is known are never traded for rows built on
+   an estimate. The car's row (a UKF estimate) is slacked first (weight `hard_penalty` / 100),
+   then the other UAVs' rows (`hard_penalty`) with the floor and obstacle rows still hard, then
+   those too (`hard_penalty` * 100): a best-effort separating velocity, e.g. when the state is
+   already unsafe. If even that fails (solver error), brake: V = 0 with the clipped yaw rate.
+   All report status "fallback" and list the hard rows they violate in ``gave_up``. certify
+   never raises on a valid input and never returns NaN.
 
 Speed bound ``||V|| <= alpha_v`` (a norm, not linear): after each QP, if ``||V|| > alpha_v`` a
 tangent cut ``(V/||V||)^T v <= alpha_v`` (valid for the ball) is added and the QP re-solved, at most
@@ -53,7 +56,16 @@ import numpy as np
 import qpsolvers
 
 from uavtrack_env.config import DT, ControlLimits
-from uavtrack_env.safety.cbf import CONNECT, CBFRows, RowBuilder, SafetyContext
+from uavtrack_env.geometry import world_to_cam_vec
+from uavtrack_env.safety.cbf import (
+    CONNECT,
+    KIND_NAMES,
+    TARGET,
+    UAV,
+    CBFRows,
+    RowBuilder,
+    SafetyContext,
+)
 from uavtrack_env.safety.config import CBFConfig
 from uavtrack_env.validation import Fields as _Fields
 
@@ -106,6 +118,12 @@ class ShieldOptions:
     """Not in the paper: velocity time constant (s) of a first-order-lag plant; > 0 makes the
     collision, floor and connectivity rows second-order CBFs on the actual velocity
     (`SafetyContext.velocity` required). 0: the paper's integrator (3)."""
+    accel_bound: float = 0.0
+    """Not in the paper: the lag plant's acceleration limit a_max (m/s^2). With ``lag_tau`` > 0
+    every command stays within ``accel_bound lag_tau / sqrt(3)`` of the actual velocity on each
+    camera axis, so the plant never clips its acceleration and the second-order rows hold as
+    written; the rows that keep the UAV from obstacles, the floor and the other UAVs also keep
+    its braking distance (`RowBuilder`). 0: no bound."""
 
     def __post_init__(self) -> None:
         f = _Fields(self)
@@ -120,6 +138,7 @@ class ShieldOptions:
         f.number("tol", lo=0)
         f.number("verify_tol", lo=0)
         f.number("lag_tau", lo=0)
+        f.number("accel_bound", lo=0)
 
 
 @dataclass
@@ -144,6 +163,9 @@ class ShieldReport:
     """Wall time of certify() in microseconds."""
     hard_violation: float = 0.0
     """Total violation (m/s) of hard rows at the returned action (nonzero only in fallback)."""
+    gave_up: list[str] = field(default_factory=list)
+    """The hard rows the returned action violates (a fallback gave them up, lowest priority
+    first: the car's row before other UAVs' before obstacles and the floor)."""
     slack_per_row: dict[str, float] = field(default_factory=dict)
     """Violation of each violated soft row (m/s)."""
     rows: CBFRows | None = field(default=None, repr=False)
@@ -156,6 +178,16 @@ class ShieldReport:
         if self.rows is None or not self.rows.hard.any():
             return math.inf
         return float(self.rows.h[self.rows.hard].min())
+
+    @property
+    def min_h_by_family(self) -> dict[str, float]:
+        """The least barrier value h of each row family present (`KIND_NAMES`)."""
+        if self.rows is None or not len(self.rows.h):
+            return {}
+        out = {}
+        for kind in np.unique(self.rows.kind):
+            out[KIND_NAMES[kind]] = float(self.rows.h[self.rows.kind == kind].min())
+        return out
 
     @property
     def h(self) -> dict[str, float]:
@@ -228,9 +260,13 @@ class SafetyFilter:
             target_as_obstacle=self.options.target_as_obstacle,
             occlusion=self.options.occlusion,
             lag_tau=self.options.lag_tau,
+            accel_bound=self.options.accel_bound if self.options.lag_tau > 0.0 else 0.0,
         )
         self._lb3 = np.full(3, -self.v_max)
         self._ub3 = np.full(3, self.v_max)
+        opt = self.options
+        # per camera axis: ||u - v|| <= accel_bound * lag_tau, the lag plant is never clipped
+        self._accel_step = opt.accel_bound * opt.lag_tau / math.sqrt(3.0)
 
     # ----------------------------------------------------------------- public
     def rows(self, ctx: SafetyContext) -> CBFRows:
@@ -265,32 +301,51 @@ class SafetyFilter:
             rows = self._rows(ctx)
         vx, vy, vz, wn = u.tolist()
         w = min(max(wn, -self.w_max), self.w_max)
-        in_bounds = self._within_bounds(vx, vy, vz)
+        box = self._box(ctx, rows)
+        in_bounds = self._within_bounds(vx, vy, vz, box)
         if in_bounds and w == wn and self._satisfies_rows(rows, ctx.yaw, vx, vy, vz):
             return u, ShieldReport(
                 "nominal", False, 0.0, 0.0, [], time_us=(time.perf_counter() - t0) * 1e6,
                 rows=rows, neighbour_ids=ctx.neighbour_ids,
             )  # fmt: skip
 
-        An, bn, soft, kept = self._qp_rows(rows, ctx.yaw)
-        v, status, solver, calls = self._safe_velocity(u[:3], in_bounds, An, bn, soft)
+        An, bn, kinds, kept = self._qp_rows(rows, ctx.yaw)
+        v, status, solver, calls = self._safe_velocity(u[:3], in_bounds, An, bn, kinds, box)
         u_safe = np.array((v[0], v[1], v[2], w))
         if not math.isfinite(u_safe.sum()):  # defensive: never hand out NaN
             u_safe = np.array((0.0, 0.0, 0.0, w))
             status, solver = "fallback", "brake"
         return u_safe, self._report(
-            status, u, u_safe, rows, ctx, t0, solver, calls, An, bn, soft, kept
+            status, u, u_safe, rows, ctx, t0, solver, calls, An, bn, kinds >= CONNECT, kept
         )
 
-    def _within_bounds(self, vx: float, vy: float, vz: float) -> bool:
-        """The velocity inside Table II's box and the speed ball alpha_v."""
+    def _box(self, ctx: SafetyContext, rows: CBFRows) -> tuple[np.ndarray, np.ndarray] | None:
+        """Per-call bounds on the camera-frame velocity command: Table II's box intersected with
+        the acceleration box around the actual velocity (`ShieldOptions.accel_bound`); None when
+        Table II's box alone applies.
+
+        The acceleration box is needed only while a row asks for braking (``A v > b`` at the
+        actual velocity v): otherwise every row holds at u = v and at the certified u, so also
+        at every point between, where the plant's clipped acceleration takes it."""
+        if self._accel_step <= 0.0 or ctx.velocity is None:
+            return None
+        if not len(rows.b) or (rows.A @ ctx.velocity - rows.b <= self.options.tol).all():
+            return None
+        v = world_to_cam_vec(ctx.velocity, ctx.yaw)
+        step = self._accel_step
+        return np.maximum(v - step, self._lb3), np.minimum(v + step, self._ub3)
+
+    def _within_bounds(
+        self, vx: float, vy: float, vz: float, box: tuple[np.ndarray, np.ndarray] | None = None
+    ) -> bool:
+        """The velocity inside Table II's box (or ``box``) and the speed ball alpha_v."""
+        if vx * vx + vy * vy + vz * vz > self.alpha_v**2:
+            return False
+        if box is not None:
+            v = np.array((vx, vy, vz))
+            return bool((v >= box[0]).all() and (v <= box[1]).all())
         vm = self.v_max
-        return (
-            abs(vx) <= vm
-            and abs(vy) <= vm
-            and abs(vz) <= vm
-            and vx * vx + vy * vy + vz * vz <= self.alpha_v**2
-        )
+        return abs(vx) <= vm and abs(vy) <= vm and abs(vz) <= vm
 
     def _satisfies_rows(self, rows: CBFRows, yaw: float, vx: float, vy: float, vz: float) -> bool:
         """The camera-frame velocity, in the global frame, meets every row A V^g <= b (47)
@@ -303,8 +358,8 @@ class SafetyFilter:
         self, rows: CBFRows, yaw: float
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """The rows of the QP in camera coordinates (A V^g = A R v_c), normalised to unit normals:
-        An, bn, which of them are soft, and their indices in ``rows``. Zero rows that hold are
-        dropped, and with `ShieldOptions.prune` those the speed ball implies."""
+        An, bn, their families (`CBFRows.kind`) and their indices in ``rows``. Zero rows that
+        hold are dropped, and with `ShieldOptions.prune` those the speed ball implies."""
         Ac, norms = _in_camera_frame(rows.A, yaw)
         zero = norms < 1e-12
         scale = np.where(zero, 1.0, norms)
@@ -315,27 +370,39 @@ class SafetyFilter:
         kept = np.flatnonzero(keep)
         An = Ac[kept] / scale[kept, None]
         bn = bn[kept]
-        soft = rows.kind[kept] >= CONNECT
-        return An, bn, soft, kept
+        return An, bn, rows.kind[kept], kept
 
     def _safe_velocity(
-        self, v_hat: np.ndarray, in_bounds: bool, An: np.ndarray, bn: np.ndarray, soft: np.ndarray
+        self,
+        v_hat: np.ndarray,
+        in_bounds: bool,
+        An: np.ndarray,
+        bn: np.ndarray,
+        kinds: np.ndarray,
+        box: tuple[np.ndarray, np.ndarray] | None = None,
     ) -> tuple[np.ndarray, str, str, int]:
-        """The velocity of the QP (47): the closed-form projection onto Table II's bounds if it
-        meets every row, else the layered QPs (a numerical failure brakes). Velocity, status,
-        solver, QP calls."""
+        """The velocity of the QP (47): the closed-form projection onto the bounds if it meets
+        every row, else the layered QPs (a numerical failure brakes). Velocity, status, solver,
+        QP calls."""
         status, solver, calls = "optimal", "closed-form", 0
-        v = v_hat if in_bounds else self._project_bounds(v_hat)
+        v = v_hat if in_bounds else self._project_bounds(v_hat, box)
         if v is None or (len(bn) and not (An @ v - bn <= self.options.tol).all()):
+            lb, ub = box if box is not None else (self._lb3, self._ub3)
             try:
-                v, status, solver, calls = self._solve_layers(v_hat, An, bn, soft)
+                v, status, solver, calls = self._solve_layers(v_hat, An, bn, kinds, lb, ub)
             except Exception:  # never let a numerical failure take the UAV down: brake
                 v, status, solver, calls = np.zeros(3), "fallback", "brake", 0
         return v, status, solver, calls
 
     # ----------------------------------------------------------------- layers
-    def _project_bounds(self, v: np.ndarray) -> np.ndarray | None:
-        """Closed-form Euclidean projection onto Table II's box intersected with the speed ball."""
+    def _project_bounds(
+        self, v: np.ndarray, box: tuple[np.ndarray, np.ndarray] | None = None
+    ) -> np.ndarray | None:
+        """Closed-form Euclidean projection onto Table II's box (or ``box``) intersected with the
+        speed ball; None where there is no closed form."""
+        if box is not None:  # exact when the box's projection lies inside the ball
+            p = np.clip(v, box[0], box[1])
+            return p if p @ p <= self.alpha_v**2 else None
         if self._bounds_kind == "ball":
             n = math.sqrt(v @ v)
             return v * (self.alpha_v / n) if n > self.alpha_v else v
@@ -343,29 +410,41 @@ class SafetyFilter:
             return np.clip(v, -self.v_max, self.v_max)
         return None
 
-    def _solve_layers(self, v_hat, An, bn, soft):
-        """Hard QP, then relaxed QP, then fallback QP, then brake (see the module docstring)."""
-        opt = self.options
+    def _solve_layers(self, v_hat, An, bn, kinds, lb3, ub3):
+        """Hard QP, relaxed QP, then the fallbacks by row priority, then brake (module
+        docstring): each fallback keeps the rows of the known geometry hard while it can."""
         calls = 0
-        weights = np.zeros(len(bn))
-        v, n = self._solve(v_hat, An, bn, weights)
-        calls += n
-        if v is not None:
-            return v, "optimal", self.solver, calls
-        if soft.any():
-            weights = np.where(soft, opt.soft_penalty, 0.0)
-            v, n = self._solve(v_hat, An, bn, weights)
+        for status, weights in self._layers(kinds):
+            v, n = self._solve(v_hat, An, bn, weights, lb3, ub3)
             calls += n
             if v is not None:
-                return v, "relaxed", self.solver, calls
-        weights = np.where(soft, opt.soft_penalty, opt.hard_penalty)
-        v, n = self._solve(v_hat, An, bn, weights)
-        calls += n
-        if v is not None:
-            return v, "fallback", self.solver, calls
+                return v, status, self.solver, calls
         return np.zeros(3), "fallback", "brake", calls
 
-    def _solve(self, v_hat, An, bn, weights) -> tuple[np.ndarray | None, int]:
+    def _layers(self, kinds: np.ndarray):
+        """(status, slack weight per row; 0 = hard) of each QP layer, in the order tried.
+
+        Priorities: the floor and the static obstacles (exact geometry) > the other UAVs
+        (messages, with their reachable sets) > the car (an estimate) > connectivity and
+        occlusion (soft). A layer gives up the lowest-priority hard family that is left.
+        """
+        opt = self.options
+        soft = kinds >= CONNECT
+        yield "optimal", np.zeros(len(kinds))
+        if soft.any():
+            yield "relaxed", np.where(soft, opt.soft_penalty, 0.0)
+        base = np.where(soft, opt.soft_penalty, 0.0)
+        target = kinds == TARGET
+        if target.any():
+            base = np.where(target, opt.hard_penalty * 1e-2, base)
+            yield "fallback", base
+        uav = kinds == UAV
+        if uav.any():
+            base = np.where(uav, opt.hard_penalty, base)
+            yield "fallback", base
+        yield "fallback", np.where(base > 0.0, base, opt.hard_penalty * 1e2)
+
+    def _solve(self, v_hat, An, bn, weights, lb3, ub3) -> tuple[np.ndarray | None, int]:
         """min 1/2||v - v_hat||^2 + sum w_j s_j  s.t.  An v - s <= bn, box, s >= 0, with cuts."""
         slack = np.flatnonzero(weights > 0.0)
         ns = len(slack)
@@ -376,8 +455,8 @@ class SafetyFilter:
         G = np.zeros((len(bn), nv))
         G[:, :3] = An
         G[slack, 3 + np.arange(ns)] = -1.0
-        lb = np.concatenate([self._lb3, np.zeros(ns)])
-        ub = np.concatenate([self._ub3, np.full(ns, _INF)])
+        lb = np.concatenate([lb3, np.zeros(ns)])
+        ub = np.concatenate([ub3, np.full(ns, _INF)])
         h = bn
         calls = 0
         v, speed = None, 0.0
@@ -456,6 +535,7 @@ class SafetyFilter:
         slack_rows = {rows.name(kept[j], ids): float(viol[j]) for j in np.flatnonzero(over & soft)}
         slack_total = float(viol[over & soft].sum())
         hard_violation = float(viol[over & ~soft].sum())
+        gave_up = [rows.name(kept[j], ids) for j in np.flatnonzero(over & ~soft)]
         if v @ v >= self.alpha_v**2 * (1.0 - 1e-9):
             active_rows.append("speed")
         if np.abs(v).max() >= self.v_max * (1.0 - 1e-9):
@@ -472,6 +552,7 @@ class SafetyFilter:
             solver_calls=calls,
             time_us=(time.perf_counter() - t0) * 1e6,
             hard_violation=hard_violation,
+            gave_up=gave_up,
             slack_per_row=slack_rows,
             rows=rows,
             neighbour_ids=ctx.neighbour_ids,

@@ -10,11 +10,9 @@ broken link, while the barriers keep ``h >= 0`` only up to the QP's round-off, s
 certifies with ``R_s + r_s_margin`` and ``R_c - r_c_margin`` and re-checks eq. (28). The car is
 known only through the UKF (`uavtrack_env.onboard`).
 
-Guarantees hold for the paper's single-integrator dynamics (eq. 3, ``dynamics.model =
-'integrator'``), with every agent shielded and messages not dropped. Under the 'lag' model with
-``lag_aware`` the shield certifies with second-order rows, which assume the commanded change of
-velocity is reachable (``|u - v| / tau <= a_max`` is not clipped). Before a UAV has ever detected
-the car it has no estimate, so no car row (documented limitation).
+What the certified actions guarantee, under which assumptions (feasible start, every UAV
+shielded, speed and acceleration bounds, lost messages, the car's estimate), and what the shield
+reports when one breaks: docs/safety.md.
 """
 
 from __future__ import annotations
@@ -30,6 +28,8 @@ from uavtrack_env.onboard import OnboardAgent
 from uavtrack_env.presets import ExpertConfig, expert_config
 from uavtrack_env.safety import SafetyContext, ShieldReport
 
+_EPISODE_KEYS = ("steps", "interventions", "fallbacks", "correction")
+
 
 class CBFShield(BaseParallelWrapper):
     """PettingZoo ParallelEnv wrapper: every action passes the distributed CBF-QP (47) first.
@@ -38,10 +38,22 @@ class CBFShield(BaseParallelWrapper):
     ``ukf``, ``cbf``, ``shield``, ``margins``, ``qp_solver`` and ``lag_aware``.
 
     Bad actions raise the env's own errors (its validation runs first) and change nothing.
-    ``info[agent]["shield"]`` holds ``active``, ``correction_norm`` (SI units, camera frame),
-    ``status``, ``slack`` (m/s of relaxed soft rows), ``active_rows``, ``hard_violation``,
-    ``min_hard_h``, ``action`` (the normalised action sent to the env) and
-    ``has_target_estimate``. ``last_reports`` keeps the full `ShieldReport` of each agent.
+    ``info[agent]["shield"]`` holds:
+
+    * ``proposed`` (the policy's action, clipped to [-1, 1] as the env would) and ``action``
+      (the certified action the env applies), both normalised; ``correction_norm`` (SI units,
+      camera frame) and ``active`` (the action was changed);
+    * ``status`` ('nominal', 'optimal', 'relaxed', 'fallback'), ``active_rows`` (the binding
+      rows), ``gave_up`` (hard rows a fallback violates), ``slack`` (m/s of relaxed soft rows),
+      ``hard_violation``;
+    * ``min_h``: the least barrier value h of each row family ('uav', 'obstacle', 'target',
+      'floor', 'connect', 'occlusion'; absent families left out), ``min_hard_h``;
+    * ``has_target_estimate``; and, on the agent's last step, ``episode``: steps,
+      interventions, intervention_rate, fallbacks and mean_correction of the episode.
+
+    The env's own signals stay visible: ``info["action_clipped"]`` and
+    ``info["n_clipped_actions"]`` count the policy's actions outside [-1, 1], as the bare env
+    would. ``last_reports`` keeps the full `ShieldReport` of each agent.
     """
 
     def __init__(self, env: Any, config: ExpertConfig | str | None = None) -> None:
@@ -63,17 +75,12 @@ class CBFShield(BaseParallelWrapper):
                 "best effort",
                 stacklevel=2,
             )
-        if env_cfg.comms.drop_prob > 0:
-            warnings.warn(
-                "CBFShield's guarantees assume every message within R_c arrives (comms.drop_prob "
-                f"= {env_cfg.comms.drop_prob}): the distributed rows (23)-(34) need both UAVs' "
-                "halves",
-                stacklevel=2,
-            )
         self._raw = raw
         self._scale = env_cfg.limits.scale
         self._ids = {a: i for i, a in enumerate(raw.possible_agents)}
         self.last_reports: dict[str, ShieldReport] = {}
+        self._clips: dict[str, int] = {}
+        self._episode: dict[str, dict[str, float]] = {}
 
     # ------------------------------------------------------------------ API
     def reset(
@@ -84,6 +91,8 @@ class CBFShield(BaseParallelWrapper):
         for agent in self.onboard.values():
             agent.reset(self._raw.layout, agents)
         self.last_reports = {}
+        self._clips = dict.fromkeys(agents, 0)
+        self._episode = {a: dict.fromkeys(_EPISODE_KEYS, 0.0) for a in agents}
         self._observe(infos)
         for info in infos.values():
             info["shield"] = {
@@ -96,30 +105,61 @@ class CBFShield(BaseParallelWrapper):
 
     def step(self, actions: dict[str, Any]):
         # The env's own validation: identical errors, raised before anything changes.
-        u, _ = self._raw.validate_actions(actions)
-        safe, reports = {}, {}
+        u, clipped = self._raw.validate_actions(actions)
+        safe, certified, reports = {}, {}, {}
         for agent, action in actions.items():
             u_safe, report = self.certify(agent, u[self._ids[agent]])
             reports[agent] = report
+            certified[agent] = np.clip(u_safe / self._scale, -1.0, 1.0)
             # An unchanged action is passed through as given (bit-identical behaviour).
-            safe[agent] = np.clip(u_safe / self._scale, -1.0, 1.0) if report.active else action
+            safe[agent] = certified[agent] if report.active else action
         obs, rewards, terms, truncs, infos = self.env.step(safe)
         self._observe(infos)
         self.last_reports = reports
         for agent, info in infos.items():
-            rep = reports[agent]
-            info["shield"] = {
-                "active": rep.active,
-                "correction_norm": rep.correction_norm,
-                "status": rep.status,
-                "slack": rep.slack,
-                "active_rows": list(rep.active_rows),
-                "hard_violation": rep.hard_violation,
-                "min_hard_h": rep.min_hard_h,
-                "action": np.asarray(safe[agent], np.float64).copy(),
-                "has_target_estimate": self.onboard[agent].estimate is not None,
-            }
+            i = self._ids[agent]
+            self._clips[agent] += bool(clipped[i])
+            info["action_clipped"] = bool(clipped[i])
+            info["n_clipped_actions"] = self._clips[agent]
+            info["shield"] = self._telemetry(agent, reports[agent], u[i], certified[agent])
+            if terms[agent] or truncs[agent]:
+                info["shield"]["episode"] = self._episode_summary(agent)
         return obs, rewards, terms, truncs, infos
+
+    def _telemetry(
+        self, agent: str, rep: ShieldReport, u: np.ndarray, certified: np.ndarray
+    ) -> dict[str, Any]:
+        """``info[agent]["shield"]`` for one step (class docstring); updates the episode sums."""
+        ep = self._episode[agent]
+        ep["steps"] += 1
+        ep["interventions"] += rep.active
+        ep["fallbacks"] += rep.status == "fallback"
+        ep["correction"] += rep.correction_norm
+        return {
+            "active": rep.active,
+            "proposed": u / self._scale,
+            "action": np.asarray(certified, np.float64),
+            "correction_norm": rep.correction_norm,
+            "status": rep.status,
+            "active_rows": list(rep.active_rows),
+            "gave_up": list(rep.gave_up),
+            "slack": rep.slack,
+            "hard_violation": rep.hard_violation,
+            "min_h": rep.min_h_by_family,
+            "min_hard_h": rep.min_hard_h,
+            "has_target_estimate": self.onboard[agent].estimate is not None,
+        }
+
+    def _episode_summary(self, agent: str) -> dict[str, float]:
+        ep = self._episode[agent]
+        steps = max(ep["steps"], 1.0)
+        return {
+            "steps": int(ep["steps"]),
+            "interventions": int(ep["interventions"]),
+            "intervention_rate": ep["interventions"] / steps,
+            "fallbacks": int(ep["fallbacks"]),
+            "mean_correction": ep["correction"] / steps,
+        }
 
     # -------------------------------------------------------------- shield
     def certify(self, agent: str, u_nominal: np.ndarray) -> tuple[np.ndarray, ShieldReport]:

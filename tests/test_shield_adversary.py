@@ -1,0 +1,173 @@
+"""The CBFShield adversary harness (`baselines.shield_adversary`): its parts, and a few worlds.
+
+The fast tests check the harness (valid actions from every family, the search, the margins, the
+report). The slow ones run the families that press the shield hardest on three grid cells:
+unshielded they must violate (the adversaries are real); shielded they must not.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+
+import numpy as np
+import pytest
+
+from baselines import shield_adversary as sa
+from uavtrack_env.presets import expert_config
+
+
+@pytest.fixture(scope="module")
+def small_env():
+    world = sa.WorldSpec(0, 3, "integrator", 0.0, 7)
+    env = sa.make_env(world, 12, None)
+    yield env
+    env.close()
+
+
+# ---------------------------------------------------------------------------- harness parts
+def test_worlds_spread_over_the_grid():
+    worlds = sa.make_worlds(60, seed=10)
+    cells = {}
+    for w in worlds:
+        cells[w.cell] = cells.get(w.cell, 0) + 1
+    assert len(cells) == 12 and set(cells.values()) == {5}
+    assert len({w.seed for w in worlds}) == 60 and worlds[0].seed == 10
+
+
+@pytest.mark.parametrize("family", sorted(sa.FAMILIES))
+def test_every_family_returns_valid_actions_for_the_live_agents(small_env, family):
+    env = small_env
+    _obs, infos = env.reset(seed=3)
+    policy = sa.FAMILIES[family](env, np.random.default_rng(0))
+    for _ in range(12):
+        if not env.agents:
+            break
+        actions = policy(_obs, infos)
+        assert sorted(actions) == sorted(env.agents)
+        for a in actions.values():
+            a = np.asarray(a)
+            assert a.shape == (4,) and np.all(np.isfinite(a)) and np.all(np.abs(a) <= 1.0)
+        _obs, _r, _t, _tr, infos = env.step(actions)
+
+
+def test_sequence_policy_plays_its_knots_in_equal_pieces(small_env):
+    env = small_env
+    env.reset(seed=0)
+    knots = 0.1 * np.arange(3)[:, None, None] + 0.2 * np.arange(4)[None, :, None] + np.zeros(4)
+    policy = sa.sequence_policy(env, knots, steps=8)
+    played = [policy({}, {})["uav_1"] for _ in range(10)]
+    expected = 0.1 + 0.2 * np.array([0, 0, 1, 1, 2, 2, 3, 3, 3, 3])
+    np.testing.assert_allclose(np.array(played), np.repeat(expected[:, None], 4, axis=1))
+
+
+def test_cem_lowers_a_toy_objective():
+    target = np.array([[[0.6, -0.4, 0.8, -0.7]], [[-0.5, 0.3, 0.9, 0.2]]])
+
+    def f(x):
+        return float(np.sum((x - target) ** 2)), x.sum()
+
+    opts = sa.SearchOptions(population=12, iterations=6, elite=3)
+    out = sa.cem_minimize(f, target.shape, np.random.default_rng(0), opts)
+    assert out.evaluations == 72 and out.history[-1] < out.history[0]
+    assert all(b <= a for a, b in zip(out.history, out.history[1:], strict=False))
+    assert out.best_value < 0.1 * f(np.zeros_like(target))[0]
+    assert out.best_payload == pytest.approx(out.best_x.sum())
+
+
+def test_link_margin_is_the_longest_spanning_tree_edge():
+    pts = np.array([[0.0, 0, 0], [5, 0, 0], [17, 0, 0], [5, 3, 0]])
+    assert sa.link_margin(pts, 20.0) == pytest.approx(8.0)
+    assert sa.link_margin(pts[:1], 20.0) == math.inf
+
+
+def _record(family, shielded, collisions, cell=(3, "lag", 0.5)):
+    n, dyn, drop = cell
+    counts = dict.fromkeys(sa.KINDS, 0)
+    counts.update(collision=collisions, uav=collisions)
+    return {
+        "family": family,
+        "shielded": shielded,
+        "cell": f"n{n}-{dyn}-drop{drop:g}",
+        "n": n,
+        "dynamics": dyn,
+        "drop": drop,
+        "agent_steps": 1000,
+        "counts": counts,
+        "least": {"uav": -0.5 if collisions else 0.3, **dict.fromkeys(sa.CONSTRAINTS[1:], 1.0)},
+        "statuses": {"optimal": 900, "fallback": 100} if shielded else {},
+    }
+
+
+def test_report_tables_and_failures():
+    records = [
+        _record("seek-uav", True, 2),
+        _record("seek-uav", False, 3),
+        _record("flee", True, 0, (6, "integrator", 0.0)),
+        _record("flee", False, 1, (6, "integrator", 0.0)),
+    ]
+    summary = sa.summarize(records)
+    uav = summary["families"]["seek-uav"]["shielded"]
+    assert uav["per_million"]["uav"] == pytest.approx(2000.0)
+    assert uav["least"]["uav"] == -0.5 and uav["statuses"]["fallback"] == 100
+    assert summary["failures"] == [["seek-uav", "n3-lag-drop0.5"]]
+    report = sa.format_report(summary, {"command": "python -m x", "worlds": 2, "steps": 5})
+    assert "| seek-uav (shielded) | 1000 | 2000 | 2000 | 0 |" in report
+    assert "| n6-integrator-drop0 | 1000 |" in report
+    assert "- seek-uav in n3-lag-drop0.5" in report
+    assert "fallback: 100" in report
+
+
+def test_cli_options():
+    opts = sa.parse_args(["--worlds", "3", "--families", "flee", "cem", "--no-search"])
+    assert opts.worlds == 3 and sa.selected_families(opts) == ["flee"]
+    assert sa.selected_families(sa.parse_args([])) == list(sa.ALL_FAMILIES)
+    with pytest.raises(SystemExit):
+        sa.parse_args(["--families", "nope"])
+
+
+# ------------------------------------------------------------------------ a few worlds
+STEPS = 200
+CELLS = {
+    "n3-integrator-drop0": sa.WorldSpec(0, 3, "integrator", 0.0, 101),
+    "n6-lag-drop0.5": sa.WorldSpec(1, 6, "lag", 0.5, 102),
+    "n3-lag-drop0": sa.WorldSpec(2, 3, "lag", 0.0, 103),
+    # World 5 of the harness's grid, where spin-climb brought two UAVs within R_s (100 steps).
+    "n6-integrator-drop0.5": sa.WorldSpec(5, 6, "integrator", 0.5, 5),
+}
+HARD = ("seek-uav", "seek-ground", "spin-climb", "flee")
+"""The families that press the shield hardest today."""
+LOST = pytest.mark.xfail(strict=False, reason="issue 16: shield under lost messages")
+FAILING = {("n6-integrator-drop0.5", "spin-climb")}
+"""(cell, family) pairs whose shielded run violated when this test was written: with half the
+messages lost, spin-climb brought a pair of UAVs 0.02 m inside R_s (2 collision agent-steps in
+1200). Every other pair here: no violation, least margins >= 0."""
+
+
+@functools.cache
+def _run(cell: str, family: str, shielded: bool) -> dict:
+    opts = sa.HarnessOptions(steps=STEPS, progress=False)
+    return sa.run_one(CELLS[cell], family, shielded, opts, expert_config("tuned"))
+
+
+def _cases(marked: bool) -> list:
+    return [
+        pytest.param(c, f, marks=[LOST] if marked and (c, f) in FAILING else [])
+        for c in CELLS
+        for f in HARD
+    ]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize(("cell", "family"), _cases(False))
+def test_unshielded_adversary_violates(cell, family):
+    run = _run(cell, family, False)
+    assert run["counts"]["collision"] + run["counts"]["disconnection"] > 0, run
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize(("cell", "family"), _cases(True))
+def test_shielded_run_has_no_violation(cell, family):
+    run = _run(cell, family, True)
+    assert run["counts"]["collision"] == 0 and run["counts"]["disconnection"] == 0, run
+    assert run["agent_steps"] == STEPS * CELLS[cell].n  # nobody was terminated
