@@ -54,8 +54,11 @@ def load_config(run_dir: Path, runs: list[dict]) -> dict:
     return config if isinstance(config, dict) else {}
 
 
-def is_comparison(runs: list[dict]) -> bool:
-    """True for ``baselines.compare`` / ``train.ppo`` episodes (they count violation steps)."""
+def is_comparison(runs: list[dict], config: dict) -> bool:
+    """True for ``baselines.compare`` / ``train.*`` episodes: a table per policy and world."""
+    command = command_text(config)
+    if "baselines.evaluate" in command:
+        return False
     return all("violation_steps" in m for m in runs)
 
 
@@ -82,6 +85,9 @@ def settings_line(runs: list[dict], config: dict) -> str:
     seeds = sorted({m["seed"] for m in runs if "seed" in m})
     durations = sorted({round(m["duration_s"], 2) for m in runs if "duration_s" in m})
     dynamics = sorted({str(m["dynamics"]) for m in runs if "dynamics" in m})
+    env = config.get("env") if isinstance(config.get("env"), dict) else {}
+    if not dynamics and isinstance(env.get("dynamics"), dict):
+        dynamics = [str(env["dynamics"].get("model"))]
     parts = [f"Worlds: {', '.join(worlds)}"]
     if durations:
         parts.append(f"episodes of {'/'.join(f'{d:g}' for d in durations)} s")
@@ -126,7 +132,7 @@ def render(run_dir: Path) -> str:
     """The markdown page of one run directory."""
     runs = load_runs(run_dir)
     config = load_config(run_dir, runs)
-    if is_comparison(runs):
+    if is_comparison(runs, config):
         from .compare import comparison_table
 
         body, notes = comparison_table(runs), []

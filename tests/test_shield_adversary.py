@@ -132,16 +132,11 @@ CELLS = {
     "n3-integrator-drop0": sa.WorldSpec(0, 3, "integrator", 0.0, 101),
     "n6-lag-drop0.5": sa.WorldSpec(1, 6, "lag", 0.5, 102),
     "n3-lag-drop0": sa.WorldSpec(2, 3, "lag", 0.0, 103),
-    # World 5 of the harness's grid, where spin-climb brought two UAVs within R_s (100 steps).
+    # World 5 of the harness's grid: spin-climb with half the messages lost
     "n6-integrator-drop0.5": sa.WorldSpec(5, 6, "integrator", 0.5, 5),
 }
 HARD = ("seek-uav", "seek-ground", "spin-climb", "flee")
-"""The families that press the shield hardest today."""
-LOST = pytest.mark.xfail(strict=False, reason="issue 16: shield under lost messages")
-FAILING = {("n6-integrator-drop0.5", "spin-climb")}
-"""(cell, family) pairs whose shielded run violated when this test was written: with half the
-messages lost, spin-climb brought a pair of UAVs 0.02 m inside R_s (2 collision agent-steps in
-1200). Every other pair here: no violation, least margins >= 0."""
+"""Hostile families: seeking team-mates and the ground, climbing while spinning, fleeing."""
 
 
 @functools.cache
@@ -150,23 +145,18 @@ def _run(cell: str, family: str, shielded: bool) -> dict:
     return sa.run_one(CELLS[cell], family, shielded, opts, expert_config("tuned"))
 
 
-def _cases(marked: bool) -> list:
-    return [
-        pytest.param(c, f, marks=[LOST] if marked and (c, f) in FAILING else [])
-        for c in CELLS
-        for f in HARD
-    ]
+CASES = [(c, f) for c in CELLS for f in HARD]
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize(("cell", "family"), _cases(False))
+@pytest.mark.parametrize(("cell", "family"), CASES)
 def test_unshielded_adversary_violates(cell, family):
     run = _run(cell, family, False)
     assert run["counts"]["collision"] + run["counts"]["disconnection"] > 0, run
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize(("cell", "family"), _cases(True))
+@pytest.mark.parametrize(("cell", "family"), CASES)
 def test_shielded_run_has_no_violation(cell, family):
     run = _run(cell, family, True)
     assert run["counts"]["collision"] == 0 and run["counts"]["disconnection"] == 0, run

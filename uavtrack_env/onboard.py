@@ -203,6 +203,10 @@ class OnboardAgent:
             timeout=max(1, round(margins.message_timeout / DT)),
         )
         self._r_c = env_config.comms.r_c
+        fastest = max(0.5, env_config.random_world.target_speed[1])  # Fig. 11: 0.5 m/s
+        self._car_speed = (
+            2.0 * fastest if margins.target_speed_max is None else margins.target_speed_max
+        )
         self._ids: dict[str, int] = {}
         self.obstacle_centers = np.zeros((0, 3))
         self.obstacle_half_extents = np.zeros((0, 3))
@@ -273,22 +277,25 @@ class OnboardAgent:
         put = object.__setattr__
         put(ctx, "neighbour_ids", tuple(self._ids[a] for a in belief.names))
         if est is not None:
-            heading, half = car_box(est, self.config.margins)
+            heading, half, growth = car_box(est, self.config.margins, self._car_speed)
             put(ctx, "target_half_extents", half)
             put(ctx, "target_heading", heading)
+            put(ctx, "target_growth", growth)
         return ctx
 
 
-def car_box(est: Estimate, margins: ShieldMargins) -> tuple[float, np.ndarray]:
-    """The car's exclusion box from a UKF estimate: (heading, half extents).
+def car_box(
+    est: Estimate, margins: ShieldMargins, car_speed: float
+) -> tuple[float, np.ndarray, float]:
+    """The car's exclusion box from a UKF estimate: (heading, half extents, growth in m/s).
 
     The car (4.6 x 1.8 x 1.5 m, section VI-A) is oriented along the estimated velocity. The box
     holds every rotation of the car within ``target_sigmas`` standard deviations of that heading
     (sigma = sigma_v / |v|; a car slower than 0.1 m/s may point anywhere: the half diagonal on
     both axes), inflated by ``target_margin`` plus ``target_sigmas`` position standard deviations
     (capped at ``target_margin_max``), and, once the car has not been detected for
-    ``target_stale_after`` s, by ``target_speed_max`` times the time since then (the car may have
-    left the prediction at up to that speed).
+    ``target_stale_after`` s, by ``car_speed`` times the time since then (the car may have left
+    the prediction at up to that speed).
     """
     var = np.diag(est.covariance)
     vx, vy = float(est.target_velocity[0]), float(est.target_velocity[1])
@@ -307,6 +314,7 @@ def car_box(est: Estimate, margins: ShieldMargins) -> tuple[float, np.ndarray]:
     sigma_p = math.sqrt(max(float(np.max(var[4:7])), 0.0))
     pad = min(margins.target_margin + margins.target_sigmas * sigma_p, margins.target_margin_max)
     stale = est.steps_since_detection * DT - margins.target_stale_after
+    growth = car_speed if stale > 0.0 else 0.0
     if stale > 0.0:
-        pad += margins.target_speed_max * stale
-    return heading, np.array([hx, hy, c]) + pad
+        pad += car_speed * stale
+    return heading, np.array([hx, hy, c]) + pad, growth

@@ -10,7 +10,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -58,9 +58,7 @@ def run_episode(
         policy.reset(raw.layout)
     rec = EpisodeRecorder(raw.possible_agents, DT, theta_star, raw.layout.obstacle_centers)
     rec.record(infos)
-    counts = dict.fromkeys(VIOLATIONS, 0)
-    agent_steps, active, certified = 0, 0, 0
-    env_time, policy_time = [], []
+    tally = _Tally()
     slacks = getattr(policy, "slacks", None)
     wall = time.perf_counter()
     for _ in tqdm(range(steps), desc=label, disable=not progress, leave=False):
@@ -70,22 +68,15 @@ def run_episode(
         actions = policy(obs, infos)
         t1 = time.perf_counter()
         obs, _, _, _, infos = env.step(actions)
-        env_time.append(time.perf_counter() - t1)
-        policy_time.append(t1 - t0)
+        tally.env_time.append(time.perf_counter() - t1)
+        tally.policy_time.append(t1 - t0)
         rec.record(infos, slacks() if slacks else None)
         if on_step is not None:
             on_step(infos)
-        for info in infos.values():
-            agent_steps += 1
-            for k in VIOLATIONS:
-                counts[k] += bool(info["violations"][k])
-        flags = _shield_flags(infos, policy)
-        if flags is not None:
-            certified += len(flags)
-            active += sum(flags.values())
+        tally.add(infos, _shield_flags(infos, policy))
     wall = time.perf_counter() - wall
     n = raw.config.n_uavs
-    timing = {"env": _median_ms(env_time) / n, "policy": _median_ms(policy_time) / n}
+    timing = {"env": _median_ms(tally.env_time) / n, "policy": _median_ms(tally.policy_time) / n}
     for stage, times in getattr(policy, "timings", {}).items():
         timing[stage] = _median_ms(times)
     metrics = {
@@ -100,14 +91,41 @@ def run_episode(
             a: [*map(float, raw.layout.uav_positions[i][:2]), float(raw.layout.uav_yaws[i])]
             for i, a in enumerate(raw.possible_agents)
         },
-        "violations_per_1000_steps": {
-            k: 1000.0 * v / agent_steps if agent_steps else math.nan for k, v in counts.items()
-        },
-        "violation_steps": counts,
-        "agent_steps": agent_steps,
-        "shield_intervention_rate": active / certified if certified else None,
+        **tally.summary(),
     }
     return EpisodeResult(rec, metrics)
+
+
+@dataclass
+class _Tally:
+    """Violation agent-steps, interventions and step times of one episode."""
+
+    agent_steps: int = 0
+    active: int = 0
+    certified: int = 0
+    counts: dict[str, int] = field(default_factory=lambda: dict.fromkeys(VIOLATIONS, 0))
+    env_time: list[float] = field(default_factory=list)
+    policy_time: list[float] = field(default_factory=list)
+
+    def add(self, infos: dict[str, dict], flags: dict[str, bool] | None) -> None:
+        for info in infos.values():
+            self.agent_steps += 1
+            for k in VIOLATIONS:
+                self.counts[k] += bool(info["violations"][k])
+        if flags is not None:
+            self.certified += len(flags)
+            self.active += sum(flags.values())
+
+    def summary(self) -> dict[str, Any]:
+        steps = self.agent_steps
+        return {
+            "violations_per_1000_steps": {
+                k: 1000.0 * v / steps if steps else math.nan for k, v in self.counts.items()
+            },
+            "violation_steps": self.counts,
+            "agent_steps": steps,
+            "shield_intervention_rate": self.active / self.certified if self.certified else None,
+        }
 
 
 def _median_ms(times: list[float]) -> float:

@@ -95,6 +95,8 @@ class SafetyContext:
     """(3,) car half size; default (2.3, 0.9, 0.75) (section VI-A)."""
     target_heading: float | None = None
     """Car yaw (rad); None: from the velocity estimate (0 when it is below 0.1 m/s)."""
+    target_growth: float = 0.0
+    """Speed (m/s) at which the car's box grows on every side (an undetected car)."""
     neighbour_ids: tuple[int, ...] | None = None
     """Optional agent ids of `neighbours`, used only to name rows ("uav:<id>")."""
     velocity: np.ndarray | None = None
@@ -139,6 +141,10 @@ class SafetyContext:
             put(self, "target_heading", math.atan2(vq[1], vq[0]) if speed > 0.1 else 0.0)
         elif not math.isfinite(float(self.target_heading)):
             raise ValueError(f"target_heading must be finite, got {self.target_heading}")
+        growth = float(self.target_growth)
+        if not (math.isfinite(growth) and growth >= 0.0):
+            raise ValueError(f"target_growth must be a finite speed >= 0 (m/s), got {growth}")
+        put(self, "target_growth", growth)
         if self.velocity is not None:
             put(self, "velocity", _vec3("velocity", self.velocity))
         if self.neighbour_velocities is not None:
@@ -356,12 +362,20 @@ def box_obstacle_rows(p: np.ndarray, centers: np.ndarray, half: np.ndarray, cbf:
 
 
 def target_rows(
-    p: np.ndarray, q: np.ndarray, vq: np.ndarray, half: np.ndarray, heading: float, cbf: CBFConfig
+    p: np.ndarray,
+    q: np.ndarray,
+    vq: np.ndarray,
+    half: np.ndarray,
+    heading: float,
+    cbf: CBFConfig,
+    growth: float = 0.0,
 ):
     """The target car as an oriented box moving at V_q: ``-grad h^T V <= gamma_obs h + drift``.
 
     h-dot = grad h . (V - V_q) for a translating box (its heading rate is neglected), so
-    ``drift = -grad h . V_q``. Scalar code: this is one row, evaluated at 80 Hz.
+    ``drift = -grad h . V_q``; a box that also grows by ``growth`` m/s on every side (an
+    undetected car, `onboard.car_box`) closes in at that speed: ``drift -= ||grad h|| growth``.
+    Scalar code: this is one row, evaluated at 80 Hz.
     """
     c, s = math.cos(heading), math.sin(heading)
     dx, dy, dz = (p - q).tolist()
@@ -381,6 +395,8 @@ def target_rows(
     vx, vy, vz = vq.tolist()
     h = d2 - cbf.obstacle_clearance**2
     drift = -(gx * vx + gy * vy + gz * vz)
+    if growth > 0.0:
+        drift -= math.sqrt(gx * gx + gy * gy + gz * gz) * growth
     return np.array(((-gx, -gy, -gz),)), np.array((h,)), np.array((drift,)), np.zeros(1, int)
 
 
@@ -640,6 +656,7 @@ class RowBuilder:
                     ctx.target_half_extents,
                     ctx.target_heading,
                     cbf,
+                    ctx.target_growth,
                 )
             )
         else:
@@ -713,6 +730,9 @@ class RowBuilder:
             gamma1[obs] = cbf.gamma_obstacle
         if sizes[2]:
             dv[tgt] = v - ctx.target_velocity
+            if ctx.target_growth > 0.0:  # the box's faces close in: like a faster car
+                g = grad[tgt][0]
+                dv[tgt] -= ctx.target_growth * g / max(float(np.linalg.norm(g)), 1e-12)
             curv[tgt] = self._target_curvature(
                 ctx.target_heading, grad[tgt][0], dv[tgt][0], h[tgt][0]
             )
@@ -740,14 +760,15 @@ class RowBuilder:
         index: np.ndarray,
         sizes: tuple[int, ...],
     ) -> np.ndarray:
-        """Right-hand sides of braking-distance rows on the same A as the collision, floor and
+        """Right-hand sides of braking-distance rows on the same A as the collision, car, floor and
         connectivity rows (not in the paper): each keeps ``s - w^2 / (2 a) >= 0``.
 
-        s is the distance left before the row's limit (to the obstacle's clearance, the floor,
-        R_s from a team-mate, or R_c), w > 0 the speed closing it along m = A / ||A||, a the
-        deceleration one UAV guarantees (`brake_decel`; a team-mate brakes as much, so a pair
-        has 2a). With v-dot = (u - v) / tau (exact under `ShieldOptions.accel_bound`) and the
-        distance convex along the motion, ``m . u <= m . v + tau a (gamma s_b / w - 1)`` keeps
+        s is the distance left before the row's limit (to the clearance of an obstacle or of the
+        car, the floor, R_s from a team-mate, or R_c), w > 0 the speed closing it along
+        m = A / ||A|| (relative to the car's estimated velocity for the car), a the deceleration
+        one UAV guarantees (`brake_decel`; a team-mate brakes as much, so a pair has 2a). With
+        v-dot = (u - v) / tau (exact under `ShieldOptions.accel_bound`) and the distance convex
+        along the motion, ``m . u <= m . v + tau a (gamma s_b / w - 1)`` keeps
         ``s_b = s - w^2 / (2 a_pair)`` from decreasing faster than ``-gamma s_b``: at s_b = 0 it
         asks for a deceleration of exactly a. Rows not closing (w <= 0) get +inf.
         """
@@ -755,7 +776,7 @@ class RowBuilder:
         out = np.full(len(h), np.inf)
         norm = np.sqrt(np.einsum("ij,ij->i", A, A))
         ends = np.cumsum(sizes)
-        uav, obs, _, flr, con, _ = (slice(e - k, e) for e, k in zip(ends, sizes, strict=True))
+        uav, obs, tgt, flr, con, _ = (slice(e - k, e) for e, k in zip(ends, sizes, strict=True))
         rho = ctx.neighbour_radius
         sigma = ctx.neighbour_velocity_radius
         gap = np.zeros(len(h))
@@ -763,6 +784,8 @@ class RowBuilder:
         pair[uav] = pair[con] = True
         standoff = cbf.obstacle_clearance if self.obstacle_model == "box" else cbf.r_s
         gap[obs] = np.sqrt(np.maximum(h[obs] + standoff**2, 0.0)) - standoff
+        clearance = cbf.obstacle_clearance  # the car's box barrier (`target_rows`)
+        gap[tgt] = np.sqrt(np.maximum(h[tgt] + clearance**2, 0.0)) - clearance
         gap[flr] = h[flr]
         dist = 0.5 * norm
         gap[uav] = dist[uav] - cbf.r_s
@@ -776,7 +799,6 @@ class RowBuilder:
         decel = np.where(pair, 2.0 * a, a)
         w = closing
         rows = (w > 1e-9) & (norm > 1e-12)
-        rows[sizes[0] + sizes[1] : sizes[0] + sizes[1] + sizes[2]] = False  # the car: not here
         rows[len(h) - sizes[5] :] = False  # occlusion rows stay as they are
         if not rows.any():
             return out

@@ -33,8 +33,10 @@ class ShieldMargins:
     ``obstacle_clearance - uav_radius`` and ``z_min - uav_radius`` must be at least this."""
     target_stale_after: float = 0.25
     """After this long (s) without a detection the car's box also grows at target_speed_max."""
-    target_speed_max: float = 3.0
-    """Bound (m/s) on the car's speed, for the box of an undetected car (`onboard.car_box`)."""
+    target_speed_max: float | None = None
+    """Bound (m/s) on how fast an undetected car leaves its prediction, |V_q - V_q estimate|: the
+    box of an undetected car grows at this speed (`onboard.car_box`). None: twice the world's
+    fastest car (the paper's 0.5 m/s, ``random_world.target_speed``)."""
     message_timeout: float = 0.5
     """A team-mate not heard for this long (s) is forgotten (it collided, was parked or left
     R_c); until then its rows stay, on its last message and reachable set (`NeighbourTable`)."""
@@ -49,9 +51,10 @@ class ShieldMargins:
             "target_margin_max",
             "surface_gap",
             "target_stale_after",
-            "target_speed_max",
         ):
             f.number(f_name, lo=0)
+        if self.target_speed_max is not None:
+            f.number("target_speed_max", lo=0)
         f.number("message_timeout", lo=0, lo_open=True)
         if self.target_margin_max < self.target_margin:
             raise ValueError(
