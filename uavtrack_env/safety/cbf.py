@@ -618,6 +618,24 @@ class RowBuilder:
         self._margins = (0.0, 0.0, 0.0, 0.0, self.margin, 0.0)
         self._layouts: dict[tuple, tuple] = {}
 
+    def _occlusion_family(self, ctx: SafetyContext):
+        """The occlusion rows (45) of the boxes that may be in N_oi. A box whose nearest possible
+        point is farther than the car (``||c - p|| - ||half|| > ||n||``) cannot be: its occluder
+        point is not computed (the 'edges' search is the costliest part of the rows)."""
+        cbf, p, q = self.cbf, ctx.position, ctx.target_position
+        oc, half = ctx.obstacle_centers, ctx.obstacle_half_extents
+        reach = float(np.linalg.norm(q - p))
+        near = np.linalg.norm(oc - p, axis=1) - np.linalg.norm(half, axis=1) <= reach
+        cand = near.nonzero()[0]
+        if not len(cand):
+            return _NONE
+        if len(cand) < len(oc):
+            oc, half = oc[cand], half[cand]
+        points = occluder_points(p, oc, half, q, cbf.occlusion_point)
+        radius = np.hypot(half[:, 0], half[:, 1]) if cbf.occlusion_size_margin else None
+        A, h, drift, idx = occlusion_rows(p, points, q, ctx.target_velocity, cbf, radius)
+        return A, h, drift, cand[idx]
+
     def _layout(self, sizes: tuple) -> tuple:
         lay = self._layouts.get(sizes)
         if lay is None:
@@ -663,14 +681,7 @@ class RowBuilder:
             fams.append(_NONE)
         fams.append(floor_rows(p, cbf))
         fams.append(connectivity_rows(p, nb, cbf, rho) if len(nb) else _NONE)
-        if has_t and self.occlusion and len(oc):
-            half = ctx.obstacle_half_extents
-            q = ctx.target_position
-            points = occluder_points(p, oc, half, q, cbf.occlusion_point)
-            radius = np.hypot(half[:, 0], half[:, 1]) if cbf.occlusion_size_margin else None
-            fams.append(occlusion_rows(p, points, q, ctx.target_velocity, cbf, radius))
-        else:
-            fams.append(_NONE)
+        fams.append(self._occlusion_family(ctx) if has_t and self.occlusion and len(oc) else _NONE)
         sizes = tuple(len(f[3]) for f in fams)
         gamma, margin, kind = self._layout(sizes)
         A = np.concatenate([f[0] for f in fams])
