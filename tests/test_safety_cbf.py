@@ -317,7 +317,7 @@ def _segment_hits_box(a, b, center, half) -> bool:
 
 
 def test_edges_occluder_sees_a_cube_whose_axis_point_misses():
-    """Scenario B0, UAV3 at 18.7 s with --occlusion-model moving-target:
+    """Scenario B0, UAV3 at 18.7 s with cbf.occlusion_model="moving-target":
     a 1 m cube beside and below the UAV hides the car's lower far corner. Its axis point lies
     outside the theta* cone, so the 'axis' barrier is satisfied; its nearest top edge lies
     inside, so the 'edges' barrier is violated, as it should be."""
