@@ -8,6 +8,7 @@ import pytest
 
 from uavtrack_env import uavtrack_v0
 from uavtrack_env.expert import ExpertPolicy
+from uavtrack_env.onboard import observe_team
 from uavtrack_env.wrappers import CBFShield, SingleAgentView
 
 WORLD = {
@@ -33,10 +34,11 @@ def test_expert_and_shield_certify_alike(preset):
     rng = np.random.default_rng(0)
     compared = 0
     while env.agents:
-        for agent, info in infos.items():
+        # the shield observed the same infos in reset/step, as one team
+        observe_team([expert.onboard[a] for a in infos], list(infos.values()))
+        for agent in infos:
             mine, theirs = expert.onboard[agent], shield.onboard[agent]
             assert mine is not theirs
-            mine.observe(info)  # the shield observed the same info in reset/step
             rows_e, rows_s = mine.rows(), theirs.rows()
             np.testing.assert_array_equal(rows_e.A, rows_s.A)
             np.testing.assert_array_equal(rows_e.b, rows_s.b)

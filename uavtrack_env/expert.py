@@ -17,7 +17,7 @@ from .config import DT, EnvConfig
 from .control import NMPC, NMPCResult
 from .control.viewpoint import ViewpointPlanner
 from .geometry import world_to_cam_vec
-from .onboard import OnboardAgent
+from .onboard import OnboardAgent, observe_team
 from .presets import ExpertConfig, expert_config
 from .safety import ShieldReport
 from .scenarios import Layout
@@ -61,6 +61,7 @@ class ExpertPolicy:
         self.planners: dict[str, PlannerState] = {}
         self.layout: Layout | None = None
         self.timings: dict[str, list[float]] = defaultdict(list)
+        self._ukf_time = 0.0
 
     @property
     def use_cbf(self) -> bool:
@@ -100,15 +101,26 @@ class ExpertPolicy:
         self.timings.clear()
 
     def __call__(self, obs: dict, infos: dict[str, dict]) -> dict[str, np.ndarray]:
-        return {agent: self.act(agent, infos[agent]) for agent in obs}
+        if self.layout is None:
+            raise RuntimeError("ExpertPolicy called before reset(layout)")
+        t0 = time.perf_counter()
+        observe_team([self.onboard[a] for a in obs], [infos[a] for a in obs])
+        self._ukf_time = (time.perf_counter() - t0) / max(len(obs), 1)
+        return {agent: self._plan(agent, infos[agent]) for agent in obs}
 
     def act(self, agent: str, info: dict) -> np.ndarray:
         """One UAV's action from its own info (measurement, own state, messages)."""
         if self.layout is None:
             raise RuntimeError("ExpertPolicy.act before reset(layout)")
-        onboard, st = self.onboard[agent], self.planners[agent]
         t0 = time.perf_counter()
-        est = onboard.observe(info)
+        self.onboard[agent].observe(info)
+        self._ukf_time = time.perf_counter() - t0
+        return self._plan(agent, info)
+
+    def _plan(self, agent: str, info: dict) -> np.ndarray:
+        """The agent's action from its observed stack: viewpoint, NMPC, CBF-QP."""
+        onboard, st = self.onboard[agent], self.planners[agent]
+        est = onboard.estimate
         if est is None:
             return np.zeros(4, np.float32)  # nothing seen yet: hover
         yaw = info["own"]["yaw"]
@@ -131,7 +143,7 @@ class ExpertPolicy:
         if use_cbf:
             u, st.last_report = onboard.certify(u)
         t4 = time.perf_counter()
-        self.timings["ukf"].append(t1 - t0)
+        self.timings["ukf"].append(self._ukf_time)
         self.timings["nmpc"].append(t3 - t2)
         self.timings["qp"].append(t2 - t1 + t4 - t3)
         st.last_u = np.asarray(u, float)

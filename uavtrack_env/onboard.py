@@ -14,12 +14,14 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
 
 from .config import DT, CameraConfig, EnvConfig
 from .estimation import Estimate, Measurement, TargetEstimator, UKFConfig
+from .estimation.team import step_team
 from .geometry import world_to_cam_vec
 from .presets import ExpertConfig
 from .safety import (
@@ -46,6 +48,14 @@ class OnboardTracker:
 
     def update(self, info: dict) -> Estimate | None:
         """Advance the filter with this step's info (measurement and own motion)."""
+        return update_trackers([self], [info])[0]
+
+
+def update_trackers(trackers: Sequence[OnboardTracker], infos: Sequence[dict]) -> list:
+    """`OnboardTracker.update` for several UAVs, their running filters stepped in one batched
+    pass (`step_team`); returns each tracker's estimate (None until its first detection)."""
+    running, inputs = [], []
+    for tracker, info in zip(trackers, infos, strict=True):
         own, m = info["own"], info["measurement"]
         pos, yaw = own["position"], own["yaw"]
         meas = None
@@ -53,14 +63,18 @@ class OnboardTracker:
             meas = Measurement(
                 m["u"], m["v"], m["depth"], m["psi"], m["truncated_u"], m["truncated_v"]
             )
-        if self.estimate is None:
+        if tracker.estimate is None:
             if meas is not None:
-                self.estimate = self.estimator.reset(meas, pos, yaw)
-            return self.estimate
+                tracker.estimate = tracker.estimator.reset(meas, pos, yaw)
+            continue
         # The UAV's own velocity (IMU/odometry) in the camera frame, as applied over the step.
         u_meas = np.concatenate([world_to_cam_vec(own["velocity"], yaw), [-own["yaw_rate"]]])
-        self.estimate = self.estimator.step(u_meas, pos, yaw, meas)
-        return self.estimate
+        running.append(tracker)
+        inputs.append((u_meas, pos, yaw, meas))
+    estimates = step_team([t.estimator for t in running], inputs)
+    for tracker, est in zip(running, estimates, strict=True):
+        tracker.estimate = est
+    return [t.estimate for t in trackers]
 
 
 @dataclass(frozen=True)
@@ -232,12 +246,15 @@ class OnboardAgent:
 
     def observe(self, info: dict) -> Estimate | None:
         """Take this step's ``info`` (measurement, own state, messages); returns the estimate."""
-        self.tracker.update(info)
+        observe_team([self], [info])
+        return self.tracker.estimate
+
+    def _take(self, info: dict) -> None:
+        """The messages and the safety context of ``info`` (the tracker has taken it)."""
         self.neighbours.update(info["neighbours"])
         self.belief = self.neighbours.belief()
         self.info, self._rows = info, None
         self._context = self._make_context(info, self.belief)
-        return self.tracker.estimate
 
     def context(self) -> SafetyContext:
         """The CBF-QP's view of the latest observation."""
@@ -282,6 +299,13 @@ class OnboardAgent:
             put(ctx, "target_heading", heading)
             put(ctx, "target_growth", growth)
         return ctx
+
+
+def observe_team(agents: Sequence[OnboardAgent], infos: Sequence[dict]) -> None:
+    """`OnboardAgent.observe` for several UAVs of one team, their UKFs in one batched pass."""
+    update_trackers([a.tracker for a in agents], infos)
+    for agent, info in zip(agents, infos, strict=True):
+        agent._take(info)
 
 
 def car_box(

@@ -204,21 +204,42 @@ class Estimate:
     """Steps since the last measurement update (0 when detected)."""
 
 
+@dataclass(frozen=True)
+class StepPlan:
+    """One estimator step's inputs, checked and prepared (`TargetEstimator.begin_step`)."""
+
+    u: np.ndarray
+    """Camera-frame command applied over the step, [v_cx, v_cy, v_cz, omega_cy]."""
+    yaw_before: float
+    """The UAV's yaw at the start of the step (the prediction's camera frame)."""
+    yaw: float
+    """The UAV's yaw now (after the step)."""
+    z: np.ndarray | None
+    """The measurement vector of eq. (11), None without a detection."""
+    R: np.ndarray | None
+    """Its noise covariance when it differs from the filter's R (a truncated box)."""
+    accel: np.ndarray
+    """Global target acceleration of the prediction (Remark 2 during a dropout, else 0)."""
+
+
 # ---------------------------------------------------------------- models (numpy, batched)
 
 
 def process_model(
     x: np.ndarray, dt: float, u: np.ndarray, yaw: float, accel: np.ndarray
 ) -> np.ndarray:
-    """Forward-Euler step (10) of model (14) for states of shape (10,) or (N, 10).
+    """Forward-Euler step (10) of model (14) for states of shape (10,) or (..., N, 10).
 
     ``u`` is the camera-frame command [v_cx, v_cy, v_cz, omega_cy] applied over the step, ``yaw``
     the UAV yaw at the start of the step, ``accel`` the global target acceleration (zero in the
-    paper's constant-velocity model; the fitted one during a dropout).
+    paper's constant-velocity model; the fitted one during a dropout). With several filters,
+    ``u`` (K, 1, 4), ``yaw`` (K, 1) and ``accel`` (K, 1, 3) broadcast against x (K, N, 10).
     """
     xt = np.moveaxis(x, -1, 0)
     vq_cam = np.moveaxis(world_to_cam_vec(x[..., 7:10], yaw), -1, 0)
-    sdot = np.stack(feature_rates(xt[0:4], u, vq_cam), -1)  # eq. (15) rows of (14)
+    sdot = np.stack(
+        feature_rates(xt[0:4], np.moveaxis(u, -1, 0), vq_cam), -1
+    )  # eq. (15) rows of (14)
     out = x.copy()
     out[..., 0:4] += dt * sdot
     out[..., PSI] = wrap_angle(out[..., PSI])
@@ -228,10 +249,11 @@ def process_model(
 
 
 def measurement_model(x: np.ndarray, yaw: float, camera: CameraConfig, x3_min: float) -> np.ndarray:
-    """h(x) of eq. (9) for states (10,) or (N, 10): [u_px, v_px, d, psi, r_c].
+    """h(x) of eq. (9) for states (10,) or (..., N, 10): [u_px, v_px, d, psi, r_c].
 
     r_c = r_q - R_c^g(yaw) r_{q/c} with r_{q/c} = [x1, x2, 1] / x3 in the camera frame.
-    x3 is floored at ``x3_min`` so wide sigma points cannot divide by zero.
+    x3 is floored at ``x3_min`` so wide sigma points cannot divide by zero. With several
+    filters, ``yaw`` (K, 1) broadcasts against x (K, N, 10).
     """
     x1, x2 = x[..., 0], x[..., 1]
     x3 = np.maximum(x[..., 2], x3_min)
@@ -277,24 +299,47 @@ def safe_sqrt(P: np.ndarray) -> np.ndarray:
         return np.sqrt(np.maximum(lam, floor))[:, None] * V.T
 
 
-def repair_covariance(P: np.ndarray, max_std: np.ndarray) -> tuple[np.ndarray, bool, bool]:
-    """Symmetrise, clip the spectrum if Cholesky fails, cap stds; returns (P, repaired, capped)."""
-    P = 0.5 * (P + P.T)
-    repaired = False
+def repair_covariance(
+    P: np.ndarray, max_std: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Symmetrise covariances (K, n, n), clip the spectrum of those whose Cholesky fails, cap
+    their stds at ``max_std``: (P, repaired (K,), capped (K,))."""
+    Ps = 0.5 * (P + np.swapaxes(P, -1, -2))
+    repaired = np.zeros(len(Ps), bool)
     try:
-        np.linalg.cholesky(P)
+        np.linalg.cholesky(Ps)
     except np.linalg.LinAlgError:
-        lam, V = np.linalg.eigh(P)
-        floor = 1e-12 * max(float(np.max(np.abs(lam))), 1.0)
-        P = (V * np.maximum(lam, floor)) @ V.T
-        P = 0.5 * (P + P.T)
-        repaired = True
-    std = np.sqrt(np.maximum(np.diag(P), 0.0))
+        for k, Pk in enumerate(Ps):
+            try:
+                np.linalg.cholesky(Pk)
+            except np.linalg.LinAlgError:
+                lam, V = np.linalg.eigh(Pk)
+                floor = 1e-12 * max(float(np.max(np.abs(lam))), 1.0)
+                Pk = (V * np.maximum(lam, floor)) @ V.T
+                Ps[k] = 0.5 * (Pk + Pk.T)
+                repaired[k] = True
+    std = np.sqrt(np.maximum(np.diagonal(Ps, axis1=-2, axis2=-1), 0.0))
     scale = np.minimum(1.0, max_std / np.maximum(std, 1e-300))
-    capped = bool(np.any(scale < 1.0))
-    if capped:
-        P = scale[:, None] * P * scale[None, :]
-    return P, repaired, capped
+    capped = np.any(scale < 1.0, axis=-1)
+    if capped.any():  # a factor 1 is exact: uncapped matrices stay bit for bit
+        Ps = scale[:, :, None] * Ps * scale[:, None, :]
+    return Ps, repaired, capped
+
+
+def tidy_states(
+    x: np.ndarray, P: np.ndarray, cfg: UKFConfig, max_std: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Guard K filter states after a predict or update: wrap psi and clamp x1..x3 of ``x``
+    (K, 10) in place; symmetrise, repair and cap ``P`` (K, 10, 10).
+
+    Returns (P, changed beyond the wrap (K,), repaired (K,))."""
+    x[:, PSI] = wrap_angle(x[:, PSI])
+    lim, (lo, hi) = cfg.x12_limit, cfg.x3_bounds
+    s = np.clip(x[:, 0:3], [-lim, -lim, lo], [lim, lim, hi])
+    clamped = np.any(s != x[:, 0:3], axis=1)
+    x[:, 0:3] = s
+    P, repaired, capped = repair_covariance(P, max_std)
+    return P, clamped | repaired | capped, repaired
 
 
 # ---------------------------------------------------------------- filterpy filters
@@ -493,15 +538,12 @@ class TargetEstimator:
 
     def _tidy(self) -> bool:
         """Wrap psi, clamp x1..x3, guard P; True if x or P changed beyond the wrap."""
-        x = self.ukf.x
-        x[PSI] = wrap_angle(x[PSI])
-        lim = self.cfg.x12_limit
-        s = np.clip(x[0:3], [-lim, -lim, self.cfg.x3_bounds[0]], [lim, lim, self.cfg.x3_bounds[1]])
-        clamped = bool(np.any(s != x[0:3]))
-        x[0:3] = s
-        self.ukf.P, repaired, capped = repair_covariance(self.ukf.P, self._max_std)
-        self.n_covariance_repairs += int(repaired)
-        return clamped or repaired or capped
+        P, changed, repaired = tidy_states(
+            self.ukf.x[None], self.ukf.P[None], self.cfg, self._max_std
+        )
+        self.ukf.P = P[0]
+        self.n_covariance_repairs += int(repaired[0])
+        return bool(changed[0])
 
     def _estimate(self, yaw: float, detected: bool) -> Estimate:
         x = self.ukf.x
@@ -571,8 +613,27 @@ class TargetEstimator:
         ``u_applied`` = [v_cx, v_cy, v_cz, omega_cy] in the camera frame held over the last dt,
         ``uav_position`` and ``uav_yaw`` the UAV pose now (after the step). Without a detection
         the filter only predicts, with the target acceleration (and, at the dropout's start, the
-        velocity) from the polynomial fit of Remark 2.
+        velocity) from the polynomial fit of Remark 2. `step_team` runs the same step for several
+        UAVs at once.
         """
+        plan = self.begin_step(u_applied, uav_position, uav_yaw, meas)
+        self.ukf.predict(dt=self.dt, u=plan.u, yaw=plan.yaw_before, accel=plan.accel)
+        if self._tidy():  # keep the update's sigma points consistent with the tidied prior
+            self.ukf.sigmas_f = self.ukf.points_fn.sigma_points(self.ukf.x, self.ukf.P)
+        if plan.z is not None:
+            self.ukf.update(plan.z, R=plan.R, yaw=plan.yaw)
+            self._tidy()
+        return self.end_step(plan)
+
+    def begin_step(
+        self,
+        u_applied: np.ndarray,
+        uav_position: np.ndarray,
+        uav_yaw: float,
+        meas: Measurement | None,
+    ) -> StepPlan:
+        """Check the inputs of `step` and prepare its filter step: the measurement vector (with
+        the held height), its noise, and the dropout start of Remark 2 (which edits V_q)."""
         if not self._ready:
             raise RuntimeError("call reset() with a first detection before step()")
         u = _vec("u_applied", u_applied, 4)
@@ -596,23 +657,21 @@ class TargetEstimator:
                 self._accel[2] = 0.0
                 self.ukf.x[9] = 0.0
         accel = self._accel if z is None else np.zeros(3)
+        R = None
+        if z is not None and (meas.truncated_u or meas.truncated_v):
+            R = self.ukf.R.copy()
+            for i, cut in enumerate((meas.truncated_u, meas.truncated_v)):
+                if cut:
+                    R[i, i] *= self.cfg.truncated_variance_scale
+        return StepPlan(u, self._yaw, yaw, z, R, accel)
 
-        self.ukf.predict(dt=self.dt, u=u, yaw=self._yaw, accel=accel)
-        if self._tidy():  # keep the update's sigma points consistent with the tidied prior
-            self.ukf.sigmas_f = self.ukf.points_fn.sigma_points(self.ukf.x, self.ukf.P)
+    def end_step(self, plan: StepPlan) -> Estimate:
+        """Close a step after the filter's predict and update: clock, dropout count, history."""
         self.t += self.dt
-        self._yaw = yaw
-        if z is None:
+        self._yaw = plan.yaw
+        if plan.z is None:
             self._since += 1
         else:
-            R = None
-            if meas.truncated_u or meas.truncated_v:
-                R = self.ukf.R.copy()
-                for i, cut in enumerate((meas.truncated_u, meas.truncated_v)):
-                    if cut:
-                        R[i, i] *= self.cfg.truncated_variance_scale
-            self.ukf.update(z, R=R, yaw=yaw)
-            self._tidy()
             self._since = 0
             self._record()
-        return self._estimate(yaw, z is not None)
+        return self._estimate(plan.yaw, plan.z is not None)

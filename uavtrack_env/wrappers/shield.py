@@ -24,7 +24,7 @@ import numpy as np
 from pettingzoo.utils.wrappers import BaseParallelWrapper
 
 from uavtrack_env.env import UAVTrackEnv
-from uavtrack_env.onboard import OnboardAgent
+from uavtrack_env.onboard import OnboardAgent, observe_team
 from uavtrack_env.presets import ExpertConfig, expert_config
 from uavtrack_env.safety import SafetyContext, ShieldReport
 
@@ -173,6 +173,5 @@ class CBFShield(BaseParallelWrapper):
         return self.onboard[agent].context()
 
     def _observe(self, infos: dict[str, dict]) -> None:
-        """Feed every live agent's onboard stack with its new info."""
-        for agent, info in infos.items():
-            self.onboard[agent].observe(info)
+        """Feed every live agent's onboard stack with its new info (UKFs in one pass)."""
+        observe_team([self.onboard[a] for a in infos], list(infos.values()))
