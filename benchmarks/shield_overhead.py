@@ -6,7 +6,9 @@ single-threaded BLAS. The shield's cost per agent-step is split into
 
 * certify: `CBFShield.certify` = rows + CBF-QP (47) (the goal: <= 100 us per agent-step; the
   SafetyContext is built when the agent observes its info, which `total` includes);
-* tracker: the per-agent UKF update that gives the shield its target estimate;
+* ukf: the team's UKF step that gives the shield its target estimates (`step_team`, one batched
+  pass for all agents), per agent-step;
+* observe: the UKF plus the team-mates' messages and the safety context, per agent-step;
 * total: (mean shielded step - mean bare step) / n, everything the wrapper adds.
 
 Steps/s are throughputs (steps / total step time); component costs are medians.
@@ -27,10 +29,11 @@ import time  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-from uavtrack_env import uavtrack_v0  # noqa: E402
+from uavtrack_env import onboard, uavtrack_v0  # noqa: E402
 from uavtrack_env.wrappers import CBFShield  # noqa: E402
 
 N_UAVS = 3
+_UKF_TIMES: list[float] = []
 
 
 def _timed(fn, sink: list[float]):
@@ -47,10 +50,19 @@ def _timed(fn, sink: list[float]):
 
 
 def run(shield: bool, amplitude: float, steps: int, seed: int) -> dict[str, np.ndarray]:
-    """Step times (s) over ``steps`` steps of fresh seeded episodes, plus component times."""
-    times: dict[str, list[float]] = {"step": [], "certify": [], "tracker": [], "active": []}
+    """Step times (s) over ``steps`` steps of fresh seeded episodes, plus component times (the
+    UKF's and the observation's per team step)."""
+    times: dict[str, list[float]] = {
+        "step": [],
+        "certify": [],
+        "ukf": [],
+        "observe": [],
+        "active": [],
+    }
     rng = np.random.default_rng(seed)
     done, episode = 0, 0
+    _UKF_TIMES.clear()
+    times["ukf"] = _UKF_TIMES
     while done < steps:
         raw = uavtrack_v0.parallel_env(
             scenario="random", n_uavs=N_UAVS, max_cycles=500, terminate_on_collision="agent"
@@ -59,8 +71,7 @@ def run(shield: bool, amplitude: float, steps: int, seed: int) -> dict[str, np.n
         env.reset(seed=seed + episode)
         if shield:  # instance-level wrappers: the class itself has no timing code
             env.certify = _timed(env.certify, times["certify"])
-            for onboard in env.onboard.values():
-                onboard.tracker.update = _timed(onboard.tracker.update, times["tracker"])
+            env._observe = _timed(env._observe, times["observe"])
         while env.agents and done < steps:
             actions = {a: amplitude * rng.uniform(-1.0, 1.0, 4) for a in env.agents}
             t0 = time.perf_counter()
@@ -81,18 +92,20 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--all-cores", action="store_true", help="do not pin to one core")
     args = ap.parse_args()
+    onboard.step_team = _timed(onboard.step_team, _UKF_TIMES)
     if not args.all_cores and hasattr(os, "sched_setaffinity"):
         os.sched_setaffinity(0, {min(os.sched_getaffinity(0))})
 
     for label, amp in (("random actions", 1.0), ("small actions", 0.05)):
-        bare_t, shield_t, cert, trk, act = [], [], [], [], []
+        bare_t, shield_t, cert, ukf, obs, act = [], [], [], [], [], []
         for r in range(args.repeats):
             bare = run(False, amp, args.steps, args.seed + 1000 * r)
             shielded = run(True, amp, args.steps, args.seed + 1000 * r)
             bare_t.append(bare["step"].mean())  # throughput: total time / steps
             shield_t.append(shielded["step"].mean())
             cert.append(np.median(shielded["certify"]))
-            trk.append(np.median(shielded["tracker"]))
+            ukf.append(np.median(shielded["ukf"]) / N_UAVS)
+            obs.append(np.median(shielded["observe"]) / N_UAVS)
             act.append(shielded["active"].mean())
         b, s = np.median(bare_t), np.median(shield_t)
         print(f"== n={N_UAVS}, random world, {label} ({args.repeats} x {args.steps} steps)")
@@ -101,7 +114,8 @@ def main() -> None:
         print(
             "  per agent-step (us): "
             f"certify median {np.median(cert) * 1e6:6.1f}   "
-            f"tracker (UKF) median {np.median(trk) * 1e6:6.1f}   "
+            f"UKF median {np.median(ukf) * 1e6:6.1f}   "
+            f"observe median {np.median(obs) * 1e6:6.1f}   "
             f"total overhead (mean) {(s - b) / N_UAVS * 1e6:6.1f}"
         )
         print(f"  certify median per repeat (us): {', '.join(f'{c * 1e6:.1f}' for c in cert)}")
