@@ -72,16 +72,19 @@ def fit_polynomial(
     span = max(float(t_last - t.min()), 1e-9)
     tau = (t - t_last) / span
     powers = np.arange(order + 1)
-    rows = [tau[:, None] ** powers]
+    basis = np.vander(tau, order + 1, increasing=True)  # tau^k, k = 0..order
+    rows = [basis]
     rhs = [p]
     if velocities is not None and velocity_weight > 0:
         v = _check_series("velocities", velocities, n)
         dbasis = np.zeros((n, order + 1))
-        dbasis[:, 1:] = powers[1:] * tau[:, None] ** (powers[1:] - 1) / span
+        dbasis[:, 1:] = basis[:, :-1] * (powers[1:] / span)
         sw = np.sqrt(velocity_weight)
         rows.append(sw * dbasis)
         rhs.append(sw * v)
-    coef, *_ = np.linalg.lstsq(np.vstack(rows), np.vstack(rhs), rcond=None)  # (order+1, 3)
+    M, Y = np.vstack(rows), np.vstack(rhs)
+    # normal equations: tau in [-1, 0] keeps M^T M well conditioned for the low orders used
+    coef = np.linalg.solve(M.T @ M, M.T @ Y)  # (order+1, 3)
     te = t_last if t_eval is None else float(t_eval)
     if not np.isfinite(te):
         raise ValueError(f"t_eval must be finite, got {t_eval}")
