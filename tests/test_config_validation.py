@@ -349,6 +349,9 @@ BAD = [
     case(ShieldMargins, "message_timeout", 0.0, V, r"message_timeout must be a finite number > 0"),
     case(ShieldMargins, "target_stale_after", -1.0, V, rf"target_stale_after must be {NONNEG}"),
     case(ShieldMargins, "target_speed_max", INF, V, rf"target_speed_max must be {NONNEG}"),
+    case(ShieldMargins, "car_on_ground", "yes", T, r"car_on_ground must be True or False"),
+    case(ShieldMargins, "truncated_box_pad", 1, T, r"truncated_box_pad must be True or False"),
+    case(ShieldMargins, "truncation_recovery", NAN, V, rf"truncation_recovery must be {NONNEG}"),
     # ------------------------------------------------------------------ ViewpointConfig
     case(ViewpointConfig, "enabled", "on", T, r"enabled must be True or False"),
     case(ViewpointConfig, "horizon_s", -1.0, V, rf"horizon_s must be {NONNEG}"),

@@ -35,6 +35,9 @@ from .safety import (
 from .scenarios import Layout
 from .target import CAR_HALF_EXTENTS
 
+_NEVER = 1 << 30
+"""An uncut-detection count that stands for 'never cut'."""
+
 
 class OnboardTracker:
     """One UAV's UKF, fed step by step from its info; ``estimate`` is None until a detection."""
@@ -42,9 +45,12 @@ class OnboardTracker:
     def __init__(self, camera: CameraConfig, cfg: UKFConfig | None = None) -> None:
         self.estimator = TargetEstimator(camera, cfg or UKFConfig())
         self.estimate: Estimate | None = None
+        self.uncut = np.full(2, _NEVER)
+        """Detections since the last one whose box was cut by the image border in u and in v."""
 
     def reset(self) -> None:
         self.estimate = None
+        self.uncut[:] = _NEVER
 
     def update(self, info: dict) -> Estimate | None:
         """Advance the filter with this step's info (measurement and own motion)."""
@@ -63,6 +69,8 @@ def update_trackers(trackers: Sequence[OnboardTracker], infos: Sequence[dict]) -
             meas = Measurement(
                 m["u"], m["v"], m["depth"], m["psi"], m["truncated_u"], m["truncated_v"]
             )
+            cut = (meas.truncated_u, meas.truncated_v)
+            tracker.uncut = np.where(cut, 0, np.minimum(tracker.uncut + 1, _NEVER))
         if tracker.estimate is None:
             if meas is not None:
                 tracker.estimate = tracker.estimator.reset(meas, pos, yaw)
@@ -221,6 +229,7 @@ class OnboardAgent:
         self._car_speed = (
             2.0 * fastest if margins.target_speed_max is None else margins.target_speed_max
         )
+        self._recovery = round(margins.truncation_recovery / DT)
         self._ids: dict[str, int] = {}
         self.obstacle_centers = np.zeros((0, 3))
         self.obstacle_half_extents = np.zeros((0, 3))
@@ -272,6 +281,12 @@ class OnboardAgent:
         """The safe camera-frame command (SI units) closest to ``u_nominal``, and a report."""
         return self.filter.certify(u_nominal, self.context(), self.rows())
 
+    def _car_centre(self, est: Estimate) -> np.ndarray:
+        """The car's estimated centre; on the ground at its half height (`car_on_ground`)."""
+        if not self.config.margins.car_on_ground:
+            return est.target_position
+        return np.array((est.target_position[0], est.target_position[1], CAR_HALF_EXTENTS[2]))
+
     def _make_context(self, info: dict, belief: NeighbourBelief) -> SafetyContext:
         """The CBF-QP's view: own pose and velocity, the team-mates as believed (and, for
         second-order rows, their velocities), the known obstacles, the car's estimate."""
@@ -286,7 +301,7 @@ class OnboardAgent:
             neighbour_velocity_radius=belief.velocity_radius if self._lag else None,
             obstacle_centers=self.obstacle_centers,
             obstacle_half_extents=self.obstacle_half_extents,
-            target_position=None if est is None else est.target_position,
+            target_position=None if est is None else self._car_centre(est),
             target_velocity=None if est is None else est.target_velocity,
         )
         # Set in place (like SafetyContext's own __post_init__): dataclasses.replace would
@@ -294,9 +309,11 @@ class OnboardAgent:
         put = object.__setattr__
         put(ctx, "neighbour_ids", tuple(self._ids[a] for a in belief.names))
         if est is not None:
-            heading, half, growth = car_box(est, self.config.margins, self._car_speed)
+            margins = self.config.margins
+            cut = margins.truncated_box_pad & (self.tracker.uncut < self._recovery)
+            half, growth = car_box(est, margins, self._car_speed, cut)
             put(ctx, "target_half_extents", half)
-            put(ctx, "target_heading", heading)
+            put(ctx, "target_heading", 0.0)
             put(ctx, "target_growth", growth)
         return ctx
 
@@ -309,36 +326,38 @@ def observe_team(agents: Sequence[OnboardAgent], infos: Sequence[dict]) -> None:
 
 
 def car_box(
-    est: Estimate, margins: ShieldMargins, car_speed: float
-) -> tuple[float, np.ndarray, float]:
-    """The car's exclusion box from a UKF estimate: (heading, half extents, growth in m/s).
+    est: Estimate,
+    margins: ShieldMargins,
+    car_speed: float,
+    cut: np.ndarray | tuple[bool, bool] = (False, False),
+) -> tuple[np.ndarray, float]:
+    """The car's exclusion box from a UKF estimate: (half extents, growth in m/s).
 
-    The car (4.6 x 1.8 x 1.5 m, section VI-A) is oriented along the estimated velocity. The box
-    holds every rotation of the car within ``target_sigmas`` standard deviations of that heading
-    (sigma = sigma_v / |v|; a car slower than 0.1 m/s may point anywhere: the half diagonal on
-    both axes), inflated by ``target_margin`` plus ``target_sigmas`` position standard deviations
-    (capped at ``target_margin_max``), and, once the car has not been detected for
-    ``target_stale_after`` s, by ``car_speed`` times the time since then (the car may have left
-    the prediction at up to that speed).
+    The box is heading-free: the car (4.6 x 1.8 x 1.5 m, section VI-A) may point anywhere, so
+    both horizontal half extents are its footprint's half diagonal (the UKF's velocity direction
+    is too unreliable to orient it: `python -m baselines.car_box`). It is inflated by
+    ``target_margin`` plus ``target_sigmas`` position standard deviations (capped at
+    ``target_margin_max``), and, once the car has not been detected for ``target_stale_after``
+    s, by ``car_speed`` times the time since then (the car may have left the prediction at up to
+    that speed). ``cut`` (u, v): the estimate carries the bias of boxes cut by the image border
+    (`ShieldMargins.truncated_box_pad`): the box grows by the footprint half diagonal
+    horizontally (u) and the car's half height vertically (v). A car on the ground
+    (`ShieldMargins.car_on_ground`) has an exact vertical extent: its half height plus
+    ``target_margin`` (the box is centred at the half height, `OnboardAgent._car_centre`).
     """
-    var = np.diag(est.covariance)
-    vx, vy = float(est.target_velocity[0]), float(est.target_velocity[1])
-    speed = math.hypot(vx, vy)
-    if speed > 0.1:
-        heading = math.atan2(vy, vx)
-        sigma_v = math.sqrt(max(float(var[7]), float(var[8]), 0.0))
-        spread = min(margins.target_sigmas * sigma_v / speed, math.pi / 2)
-    else:
-        heading, spread = 0.0, math.pi / 2
     a, b, c = (float(x) for x in CAR_HALF_EXTENTS)
     diag = math.hypot(a, b)
-    # the bounding box of the car rotated by any angle in [-spread, spread]
-    hx = diag if spread >= math.atan2(b, a) else a * math.cos(spread) + b * math.sin(spread)
-    hy = diag if spread >= math.atan2(a, b) else a * math.sin(spread) + b * math.cos(spread)
-    sigma_p = math.sqrt(max(float(np.max(var[4:7])), 0.0))
+    sigma_p = math.sqrt(max(float(np.max(np.diag(est.covariance)[4:7])), 0.0))
     pad = min(margins.target_margin + margins.target_sigmas * sigma_p, margins.target_margin_max)
     stale = est.steps_since_detection * DT - margins.target_stale_after
     growth = car_speed if stale > 0.0 else 0.0
     if stale > 0.0:
         pad += car_speed * stale
-    return heading, np.array([hx, hy, c]) + pad, growth
+    half = np.array([diag, diag, c]) + pad
+    if cut[0]:
+        half[:2] += diag
+    if margins.car_on_ground:
+        half[2] = c + margins.target_margin
+    elif cut[1]:
+        half[2] += c
+    return half, growth

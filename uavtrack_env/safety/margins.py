@@ -37,6 +37,17 @@ class ShieldMargins:
     """Bound (m/s) on how fast an undetected car leaves its prediction, |V_q - V_q estimate|: the
     box of an undetected car grows at this speed (`onboard.car_box`). None: twice the world's
     fastest car (the paper's 0.5 m/s, ``random_world.target_speed``)."""
+    car_on_ground: bool = True
+    """The car drives on the flat ground (section VI-A): its box spans the heights 0 to its
+    height (plus ``target_margin``), whatever the UKF's height estimate; False: the estimated
+    height with the same pads as the horizontal axes."""
+    truncated_box_pad: bool = True
+    """While the car's box is cut by the image border, its centre (u, v) is biased inwards and
+    the UKF's position with it, by up to the part of the car outside the image: pad the car's
+    box by the car's footprint half diagonal horizontally (a cut in u) and its half height
+    vertically (a cut in v) until ``truncation_recovery`` s of uncut detections have passed."""
+    truncation_recovery: float = 0.5
+    """Uncut detection time (s) after which the UKF has shed a truncated box's bias."""
     message_timeout: float = 0.5
     """A team-mate not heard for this long (s) is forgotten (it collided, was parked or left
     R_c); until then its rows stay, on its last message and reachable set (`NeighbourTable`)."""
@@ -51,8 +62,11 @@ class ShieldMargins:
             "target_margin_max",
             "surface_gap",
             "target_stale_after",
+            "truncation_recovery",
         ):
             f.number(f_name, lo=0)
+        f.flag("truncated_box_pad")
+        f.flag("car_on_ground")
         if self.target_speed_max is not None:
             f.number("target_speed_max", lo=0)
         f.number("message_timeout", lo=0, lo_open=True)
