@@ -43,7 +43,8 @@ def test_box_is_heading_free_with_the_covariance_pad():
     for velocity in ((1.0, 0.0, 0.0), (0.0, -2.0, 0.0), (0.0, 0.0, 0.0)):
         half, growth = car_box(_estimate(0.1, velocity=velocity), m, 2.0)
         pad = 0.25 + 3 * 0.1
-        np.testing.assert_allclose(half, [DIAG + pad, DIAG + pad, C + 0.25])
+        # on the ground: from below the ground up to the car's height + target_margin
+        np.testing.assert_allclose(half, [DIAG + pad, DIAG + pad, 2 * C + 0.25 - 0.6])
         assert growth == 0.0
 
 
@@ -57,51 +58,62 @@ def test_pad_is_capped_and_a_stale_car_grows():
     assert half[0] == pytest.approx(DIAG + 0.25 + 0.3 + 2.0 * (since * DT - 0.25))
 
 
-def test_cut_boxes_pad_by_the_car_size():
+def test_cut_boxes_pad_by_the_car_size_at_the_car_speed():
+    """A spell of cut boxes grows the box at car_speed up to the car's size (and says so in the
+    growth); on the ground the vertical extent stays exact."""
     m = ShieldMargins()
-    plain, _ = car_box(_estimate(), m, 2.0)
-    cut_u, _ = car_box(_estimate(), m, 2.0, (True, False))
-    np.testing.assert_allclose(cut_u - plain, [DIAG, DIAG, 0.0])
-    # on the ground the vertical extent is known: a cut in v changes nothing
-    cut_v, _ = car_box(_estimate(), m, 2.0, (False, True))
+    plain, growth = car_box(_estimate(), m, 2.0)
+    assert growth == 0.0
+    ramp, growth = car_box(_estimate(), m, 2.0, (0.5, 0.0))
+    np.testing.assert_allclose(ramp - plain, [1.0, 1.0, 0.0])
+    assert growth == 2.0
+    full, growth = car_box(_estimate(), m, 2.0, (10.0, 0.0))
+    np.testing.assert_allclose(full - plain, [DIAG, DIAG, 0.0])
+    assert growth == 0.0
+    cut_v, _ = car_box(_estimate(), m, 2.0, (0.0, 10.0))
     np.testing.assert_allclose(cut_v, plain)
     off = dataclasses.replace(m, car_on_ground=False)
     free, _ = car_box(_estimate(), off, 2.0)
-    free_cut, _ = car_box(_estimate(), off, 2.0, (False, True))
+    free_cut, _ = car_box(_estimate(), off, 2.0, (0.0, 10.0))
     np.testing.assert_allclose(free_cut - free, [0.0, 0.0, C])
     assert free[2] == pytest.approx(C + 0.25 + 0.3)
 
 
 def test_truncated_detections_pad_the_box_until_recovered():
-    """A cut box pads the context's car box; `truncation_recovery` s of uncut detections
-    remove the pad, and undetected steps do not count towards it. The car sits on the ground."""
+    """A cut box starts a spell that pads the context's car box at the car speed; the spell
+    ends after `truncation_recovery` s of uncut detections (undetected steps do not count) and
+    the pad with it. The box reaches the car's height on the ground."""
     env = uavtrack_v0.parallel_env(scenario="A")
     _, infos = env.reset(seed=0)
     cfg = expert_config()
     agent = OnboardAgent("uav_0", 0, env.config, cfg)
     agent.reset(env.layout, env.possible_agents)
+    speed = agent._car_speed
     info = infos["uav_0"]
     assert info["measurement"]["detected"]
     recovery = round(cfg.margins.truncation_recovery / DT)
 
-    def observe(cut: bool = False, detected: bool = True) -> np.ndarray:
+    def observe(cut: bool = False, detected: bool = True) -> float:
         step = copy.deepcopy(info)
         step["measurement"].update(truncated_u=cut, detected=detected)
         agent.observe(step)
         ctx = agent.context()
-        assert ctx.target_position[2] == pytest.approx(C)
-        return ctx.target_half_extents
+        top = ctx.target_position[2] + ctx.target_half_extents[2]
+        assert top == pytest.approx(max(2 * C + 0.25, 2 * ctx.target_position[2]))
+        return float(ctx.target_half_extents[0])
 
     for _ in range(2 * recovery):  # the covariance settles
         base = observe()
-    padded = observe(cut=True)
-    assert padded[0] - base[0] == pytest.approx(DIAG, abs=0.05)
-    for _ in range(recovery - 1):
-        observe()
-    for _ in range(5):  # lost detections keep the pad
-        assert observe(detected=False)[0] > base[0] + DIAG - 0.05
-    last = observe()
-    assert last[0] < base[0] + 0.05
+    steps = 0
+    for k in range(recovery):
+        steps += 1
+        pad = observe(cut=k == 0) - base
+        assert pad == pytest.approx(min(speed * steps * DT, DIAG), abs=0.02)
+    for _ in range(5):  # lost detections keep the spell going
+        steps += 1
+        pad = observe(detected=False) - base
+        assert pad >= min(speed * steps * DT, DIAG) - 0.02
+    assert observe() < base + 0.02  # the recovery-th uncut detection ends the spell
     env.close()
 
 

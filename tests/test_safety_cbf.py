@@ -16,7 +16,9 @@ from uavtrack_env.safety.cbf import (
     OCCLUSION,
     TARGET,
     UAV,
+    h_box,
     occluder_points,
+    target_rows,
 )
 from uavtrack_env.safety.config import CBFConfig
 
@@ -331,3 +333,18 @@ def test_edges_occluder_sees_a_cube_whose_axis_point_misses():
     edges = occluder_points(p, center[None], half[None], q, "edges")[0]
     assert occl_h(p, axis, q - p, ts) > 0.0  # 34.5 deg: the axis barrier sees no danger
     assert occl_h(p, edges, q - p, ts) < -np.radians(10)  # 13.4 deg, deep inside the cone
+
+
+@pytest.mark.parametrize("below", [True, False])
+def test_inside_the_car_box_the_way_out_is_never_its_bottom(below):
+    """A UAV inside the car's box below its centre is sent up or sideways (the car stands on the
+    ground), and the row's h is the grounded box barrier."""
+    cbf = CBFConfig().resolve()
+    q, half = np.array([0.0, 0.0, 0.75]), np.array([3.0, 3.0, 1.0])
+    p = np.array([0.4, -0.2, 0.3 if below else 1.5])
+    A, h, _drift, _ = target_rows(p, q, np.zeros(3), half, 0.0, cbf)
+    assert h[0] == pytest.approx(h_box(p, q, half, cbf.obstacle_clearance, grounded=True)[0])
+    top = q[2] + half[2] - p[2]
+    assert h[0] == pytest.approx(-(top**2) - cbf.obstacle_clearance**2)
+    # -grad h . V <= b: the row asks for an upward velocity
+    assert A[0, 2] < 0 and A[0, 0] == 0 and A[0, 1] == 0

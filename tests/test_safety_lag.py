@@ -107,7 +107,10 @@ def test_static_and_target_rows_equal_the_second_order_condition(seed):
     cases = {
         OBSTACLE: (CBF.gamma_obstacle, lambda j, t: h_box(me(t), centers[j], half[j], c)[0]),
         FLOOR: (CBF.gamma_z, lambda j, t: me(t)[2] - CBF.z_min),
-        TARGET: (CBF.gamma_obstacle, lambda j, t: h_box(me(t), q + vq * t, car, c, heading)[0]),
+        TARGET: (
+            CBF.gamma_obstacle,
+            lambda j, t: h_box(me(t), q + vq * t, car, c, heading, grounded=True)[0],
+        ),
     }
     for kind, (gamma1, h_of) in cases.items():
         rows, sel = rows_of(ctx, kind)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, ClassVar
@@ -155,6 +156,16 @@ class Score:
     occluded: np.ndarray
 
 
+NOTHING_NEAR = 1.0e4
+"""``info["truth"]["nearest_uav_distance"]`` with no other live UAV and
+``"nearest_obstacle_clearance"`` without obstacles (m): finite, so every info value is."""
+
+
+def _finite(distance: float) -> float:
+    """A nearest distance, `NOTHING_NEAR` when there is nothing (inf)."""
+    return float(distance) if math.isfinite(distance) else NOTHING_NEAR
+
+
 class UAVTrackEnv(ParallelEnv):
     """Cooperative visual tracking of a car by n UAVs in a cluttered PyBullet world.
 
@@ -183,7 +194,8 @@ class UAVTrackEnv(ParallelEnv):
     occlusion}`` and ``cost`` = how many are true. Collision: touching an obstacle, the car or the
     ground (PyBullet contacts), or another UAV closer than R_s. Disconnection: the UAVs' graph with
     edges <= R_c is not connected. Occlusion: obstacles (or UAVs) block more of the car's sample
-    points than the detector can tolerate.
+    points than the detector can tolerate. Every info value is finite: a nearest distance to
+    nothing (a UAV alone, a world without obstacles) is ``NOTHING_NEAR`` (1e4 m).
 
     **Episode end**: terminated on collision (that agent or all, ``terminate_on_collision``);
     truncated after ``max_cycles`` steps (80 Hz).
@@ -611,8 +623,8 @@ class UAVTrackEnv(ParallelEnv):
             "target_position": self.target.center(),
             "target_velocity": self.target.velocity(),
             "target_acceleration": self.target.acceleration(),
-            "nearest_uav_distance": float(m.nearest_uav[i]),
-            "nearest_obstacle_clearance": float(m.nearest_obstacle[i]),
+            "nearest_uav_distance": _finite(m.nearest_uav[i]),
+            "nearest_obstacle_clearance": _finite(m.nearest_obstacle[i]),
             "target_clearance": float(m.target_clearance[i]),
             "occlusion_angles": theta.copy(),
             "occlusion_candidates": in_noi.copy(),
@@ -681,3 +693,10 @@ class UAVTrackEnv(ParallelEnv):
 
     def close(self) -> None:
         self.world.close()
+
+    def __reduce_ex__(self, protocol):
+        raise TypeError(
+            "a UAVTrackEnv owns a live PyBullet client, so it cannot be copied or pickled; "
+            "build a new env from the same arguments (uavtrack_v0.parallel_env(**kwargs), or a "
+            "functools.partial of it, which pickles)"
+        )

@@ -35,9 +35,6 @@ from .safety import (
 from .scenarios import Layout
 from .target import CAR_HALF_EXTENTS
 
-_NEVER = 1 << 30
-"""An uncut-detection count that stands for 'never cut'."""
-
 
 class OnboardTracker:
     """One UAV's UKF, fed step by step from its info; ``estimate`` is None until a detection."""
@@ -45,12 +42,9 @@ class OnboardTracker:
     def __init__(self, camera: CameraConfig, cfg: UKFConfig | None = None) -> None:
         self.estimator = TargetEstimator(camera, cfg or UKFConfig())
         self.estimate: Estimate | None = None
-        self.uncut = np.full(2, _NEVER)
-        """Detections since the last one whose box was cut by the image border in u and in v."""
 
     def reset(self) -> None:
         self.estimate = None
-        self.uncut[:] = _NEVER
 
     def update(self, info: dict) -> Estimate | None:
         """Advance the filter with this step's info (measurement and own motion)."""
@@ -69,8 +63,6 @@ def update_trackers(trackers: Sequence[OnboardTracker], infos: Sequence[dict]) -
             meas = Measurement(
                 m["u"], m["v"], m["depth"], m["psi"], m["truncated_u"], m["truncated_v"]
             )
-            cut = (meas.truncated_u, meas.truncated_v)
-            tracker.uncut = np.where(cut, 0, np.minimum(tracker.uncut + 1, _NEVER))
         if tracker.estimate is None:
             if meas is not None:
                 tracker.estimate = tracker.estimator.reset(meas, pos, yaw)
@@ -230,6 +222,10 @@ class OnboardAgent:
             2.0 * fastest if margins.target_speed_max is None else margins.target_speed_max
         )
         self._recovery = round(margins.truncation_recovery / DT)
+        self._uncut = np.full(2, self._recovery)
+        """Detections since the last box cut by the image border in u and in v."""
+        self._cut_steps = np.zeros(2, int)
+        """Steps since each axis's spell of cut boxes began (0: none)."""
         self._ids: dict[str, int] = {}
         self.obstacle_centers = np.zeros((0, 3))
         self.obstacle_half_extents = np.zeros((0, 3))
@@ -250,6 +246,8 @@ class OnboardAgent:
         self.obstacle_half_extents = np.asarray(layout.obstacle_half_extents, float).reshape(-1, 3)
         self._ids = {a: i for i, a in enumerate(agents)}
         self.tracker.reset()
+        self._uncut[:] = self._recovery
+        self._cut_steps[:] = 0
         self.neighbours.reset(agents, layout.uav_positions, self.name, self._r_c)
         self.info, self.belief, self._context, self._rows = None, None, None, None
 
@@ -259,7 +257,14 @@ class OnboardAgent:
         return self.tracker.estimate
 
     def _take(self, info: dict) -> None:
-        """The messages and the safety context of ``info`` (the tracker has taken it)."""
+        """The messages, the cut-box spells and the safety context of ``info`` (the tracker has
+        taken it)."""
+        m = info["measurement"]
+        if m["detected"]:
+            cut = np.array((m["truncated_u"], m["truncated_v"]))
+            self._uncut = np.where(cut, 0, np.minimum(self._uncut + 1, self._recovery))
+        spell = self._uncut < self._recovery
+        self._cut_steps = np.where(spell, self._cut_steps + 1, 0)
         self.neighbours.update(info["neighbours"])
         self.belief = self.neighbours.belief()
         self.info, self._rows = info, None
@@ -281,12 +286,6 @@ class OnboardAgent:
         """The safe camera-frame command (SI units) closest to ``u_nominal``, and a report."""
         return self.filter.certify(u_nominal, self.context(), self.rows())
 
-    def _car_centre(self, est: Estimate) -> np.ndarray:
-        """The car's estimated centre; on the ground at its half height (`car_on_ground`)."""
-        if not self.config.margins.car_on_ground:
-            return est.target_position
-        return np.array((est.target_position[0], est.target_position[1], CAR_HALF_EXTENTS[2]))
-
     def _make_context(self, info: dict, belief: NeighbourBelief) -> SafetyContext:
         """The CBF-QP's view: own pose and velocity, the team-mates as believed (and, for
         second-order rows, their velocities), the known obstacles, the car's estimate."""
@@ -301,7 +300,7 @@ class OnboardAgent:
             neighbour_velocity_radius=belief.velocity_radius if self._lag else None,
             obstacle_centers=self.obstacle_centers,
             obstacle_half_extents=self.obstacle_half_extents,
-            target_position=None if est is None else self._car_centre(est),
+            target_position=None if est is None else est.target_position,
             target_velocity=None if est is None else est.target_velocity,
         )
         # Set in place (like SafetyContext's own __post_init__): dataclasses.replace would
@@ -310,8 +309,8 @@ class OnboardAgent:
         put(ctx, "neighbour_ids", tuple(self._ids[a] for a in belief.names))
         if est is not None:
             margins = self.config.margins
-            cut = margins.truncated_box_pad & (self.tracker.uncut < self._recovery)
-            half, growth = car_box(est, margins, self._car_speed, cut)
+            cut_time = self._cut_steps * DT if margins.truncated_box_pad else np.zeros(2)
+            half, growth = car_box(est, margins, self._car_speed, cut_time)
             put(ctx, "target_half_extents", half)
             put(ctx, "target_heading", 0.0)
             put(ctx, "target_growth", growth)
@@ -329,35 +328,39 @@ def car_box(
     est: Estimate,
     margins: ShieldMargins,
     car_speed: float,
-    cut: np.ndarray | tuple[bool, bool] = (False, False),
+    cut_time: np.ndarray | tuple[float, float] = (0.0, 0.0),
 ) -> tuple[np.ndarray, float]:
     """The car's exclusion box from a UKF estimate: (half extents, growth in m/s).
 
     The box is heading-free: the car (4.6 x 1.8 x 1.5 m, section VI-A) may point anywhere, so
     both horizontal half extents are its footprint's half diagonal (the UKF's velocity direction
-    is too unreliable to orient it: `python -m baselines.car_box`). It is inflated by
+    is too unreliable to orient it: ``python -m baselines.car_box``). It is inflated by
     ``target_margin`` plus ``target_sigmas`` position standard deviations (capped at
     ``target_margin_max``), and, once the car has not been detected for ``target_stale_after``
     s, by ``car_speed`` times the time since then (the car may have left the prediction at up to
-    that speed). ``cut`` (u, v): the estimate carries the bias of boxes cut by the image border
-    (`ShieldMargins.truncated_box_pad`): the box grows by the footprint half diagonal
-    horizontally (u) and the car's half height vertically (v). A car on the ground
-    (`ShieldMargins.car_on_ground`) has an exact vertical extent: its half height plus
-    ``target_margin`` (the box is centred at the half height, `OnboardAgent._car_centre`).
+    that speed). ``cut_time`` (u, v): how long (s) the estimate has carried the bias of boxes
+    cut by the image border (`ShieldMargins.truncated_box_pad`; 0: none). That bias is at most
+    the part of the car outside the image: the box grows by up to the footprint's half diagonal
+    horizontally (u) and the car's half height vertically (v), at ``car_speed`` (a bias enters
+    the UKF over several updates, not at once; the growth enters the row as the box's faces
+    closing in). A car on the ground (`ShieldMargins.car_on_ground`) has an exact vertical
+    extent: the box, centred at the estimate, reaches from the ground (or below) to the car's
+    height plus ``target_margin``, whatever the estimated height.
     """
     a, b, c = (float(x) for x in CAR_HALF_EXTENTS)
     diag = math.hypot(a, b)
     sigma_p = math.sqrt(max(float(np.max(np.diag(est.covariance)[4:7])), 0.0))
     pad = min(margins.target_margin + margins.target_sigmas * sigma_p, margins.target_margin_max)
     stale = est.steps_since_detection * DT - margins.target_stale_after
-    growth = car_speed if stale > 0.0 else 0.0
-    if stale > 0.0:
+    growing = stale > 0.0
+    if growing:
         pad += car_speed * stale
     half = np.array([diag, diag, c]) + pad
-    if cut[0]:
-        half[:2] += diag
-    if margins.car_on_ground:
-        half[2] = c + margins.target_margin
-    elif cut[1]:
-        half[2] += c
-    return half, growth
+    for axes, most, t in (((0, 1), diag, cut_time[0]), ((2,), c, cut_time[1])):
+        if t > 0.0:
+            half[list(axes)] += min(car_speed * t, most)
+            growing |= car_speed * t < most
+    if margins.car_on_ground:  # the box spans [<= 0, the car's height + target_margin]
+        top, z = 2.0 * c + margins.target_margin, float(est.target_position[2])
+        half[2] = max(top - z, z)
+    return half, car_speed if growing else 0.0

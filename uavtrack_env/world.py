@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 import os
+import weakref
 
 import numpy as np
 import pybullet as p
@@ -44,6 +45,8 @@ class World:
         self.cid = p.connect(p.GUI if gui else p.DIRECT)
         if self.cid < 0:
             raise RuntimeError("could not connect to PyBullet")
+        # an env dropped without close() still frees its client when it is collected
+        self._release = weakref.finalize(self, _disconnect, self.cid)
         self.gui = gui
         self.uav_ids: list[int] = []
         self.obstacle_ids: list[int] = []
@@ -174,9 +177,20 @@ class World:
         )
 
     def close(self) -> None:
-        if self.cid >= 0:
-            try:
-                p.disconnect(physicsClientId=self.cid)
-            except p.error:
-                pass
-            self.cid = -1
+        self._release()
+        self.cid = -1
+
+    def __reduce_ex__(self, protocol):
+        raise TypeError(
+            "a uavtrack world owns a live PyBullet client, which cannot be copied or pickled; "
+            "build a new env from the same arguments instead (uavtrack_v0.parallel_env(**kwargs) "
+            "or a functools.partial of it, which pickles)"
+        )
+
+
+def _disconnect(cid: int) -> None:
+    """Disconnect PyBullet client ``cid`` (a `World`'s finalizer; runs at most once)."""
+    try:
+        p.disconnect(physicsClientId=cid)
+    except p.error:
+        pass

@@ -234,12 +234,15 @@ def h_connect(p: np.ndarray, q: np.ndarray, r_c: float) -> np.ndarray:
     return -h_pair(p, q, r_c)
 
 
-def _box_distance_grad(local: np.ndarray, half: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _box_distance_grad(
+    local: np.ndarray, half: np.ndarray, grounded: bool = False
+) -> tuple[np.ndarray, np.ndarray]:
     """Signed squared box distance and its gradient for points in box coordinates (m, 3).
 
     Outside: ``dist^2`` with gradient ``2 (p - closest point)``. Inside (penetration depth e to
     the nearest face with outward normal n): ``-e^2`` with gradient ``2 e n``. The function is
-    C^1 across the surface (value and gradient both vanish there).
+    C^1 across the surface (value and gradient both vanish there). ``grounded``: the box
+    stands on the ground, so its bottom face is never the way out (`target_rows`).
     """
     excess = np.abs(local) - half
     outside = np.maximum(excess, 0.0)
@@ -248,27 +251,37 @@ def _box_distance_grad(local: np.ndarray, half: np.ndarray) -> tuple[np.ndarray,
     inside = np.flatnonzero(excess.max(axis=1) < 0.0)
     if len(inside):
         ex = excess[inside]
+        sign = np.sign(local[inside])
+        if grounded:
+            ex[:, 2] = local[inside, 2] - np.broadcast_to(half, local.shape)[inside, 2]
+            sign[:, 2] = 1.0
         rows = np.arange(len(inside))
         axis = np.argmax(ex, axis=1)  # the face closest to the point (least negative excess)
         depth = -ex[rows, axis]
         g = np.zeros_like(ex)
-        g[rows, axis] = np.copysign(2.0 * depth, local[inside, axis])
+        g[rows, axis] = 2.0 * depth * sign[rows, axis]
         grad[inside] = g
         d2[inside] = -(depth**2)
     return d2, grad
 
 
 def h_box(
-    p: np.ndarray, centers: np.ndarray, half: np.ndarray, clearance: float, yaw: float = 0.0
+    p: np.ndarray,
+    centers: np.ndarray,
+    half: np.ndarray,
+    clearance: float,
+    yaw: float = 0.0,
+    grounded: bool = False,
 ) -> np.ndarray:
     """Box barrier ``sdist(p, box)^2 - clearance^2`` for boxes rotated by ``yaw`` about z.
 
-    ``sdist^2`` is the squared distance outside and minus the squared penetration depth inside.
+    ``sdist^2`` is the squared distance outside and minus the squared penetration depth inside
+    (never to the bottom face of a ``grounded`` box: the car's barrier, `target_rows`).
     """
     c, s = math.cos(yaw), math.sin(yaw)
     d = np.asarray(p, float)[None, :] - np.atleast_2d(centers)
     local = np.stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1], d[:, 2]], axis=1)
-    d2, _ = _box_distance_grad(local, np.atleast_2d(half))
+    d2, _ = _box_distance_grad(local, np.atleast_2d(half), grounded)
     return d2 - clearance**2
 
 
@@ -375,18 +388,20 @@ def target_rows(
     h-dot = grad h . (V - V_q) for a translating box (its heading rate is neglected), so
     ``drift = -grad h . V_q``; a box that also grows by ``growth`` m/s on every side (an
     undetected car, `onboard.car_box`) closes in at that speed: ``drift -= ||grad h|| growth``.
-    Scalar code: this is one row, evaluated at 80 Hz.
+    From inside the box the way out is its nearest side or its top, never its bottom: the car
+    stands on the ground. Scalar code: this is one row, evaluated at 80 Hz.
     """
     c, s = math.cos(heading), math.sin(heading)
     dx, dy, dz = (p - q).tolist()
     hx, hy, hz = half.tolist()
     local = (c * dx + s * dy, -s * dx + c * dy, dz)
     ex = [abs(a) - b for a, b in zip(local, (hx, hy, hz), strict=True)]
-    if max(ex) < 0.0:  # inside: nearest face
-        ax = ex.index(max(ex))
-        depth = -ex[ax]
+    if max(ex) < 0.0:  # inside: nearest face, the bottom excluded (the car is on the ground)
+        inside = [ex[0], ex[1], dz - hz]
+        ax = inside.index(max(inside))
+        depth = -inside[ax]
         g = [0.0, 0.0, 0.0]
-        g[ax] = math.copysign(2.0 * depth, local[ax])
+        g[ax] = 2.0 * depth if ax == 2 else math.copysign(2.0 * depth, local[ax])
         d2 = -depth * depth
     else:
         g = [math.copysign(2.0 * max(e, 0.0), a) for e, a in zip(ex, local, strict=True)]
