@@ -254,3 +254,26 @@ def test_slightly_out_of_range_counts_and_boundary_does_not(make_env):
     assert infos["uav_0"]["action_clipped"] is False
     assert infos["uav_2"]["action_clipped"] is True
     assert infos["uav_2"]["n_clipped_actions"] == 1
+
+
+@pytest.mark.parametrize(
+    ("bad", "message"),
+    [(np.zeros(3), r"has shape \(3,\)"), (np.array([0, 0, np.nan, 0]), "is not finite")],
+)
+@pytest.mark.parametrize("position", [0, 1, 2])
+def test_aec_rejects_a_bad_action_when_its_agent_steps(bad, message, position):
+    """The AEC env names the agent whose action is bad as it steps, and changes nothing."""
+    from uavtrack_env import uavtrack_v0
+
+    env = uavtrack_v0.env(scenario="A")
+    env.reset(seed=0)
+    for k, agent in enumerate(env.agent_iter()):
+        if k < position:
+            env.step(np.zeros(4, np.float32))
+            continue
+        with pytest.raises(ValueError, match=rf"action for '{agent}' {message}"):
+            env.step(bad)
+        assert env.agent_selection == agent  # still this agent's turn
+        env.step(np.zeros(4, np.float32))
+        break
+    env.close()

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import math
 import os
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -173,7 +174,7 @@ def local_ray():
 
 @pytest.mark.slow
 @pytest.mark.parametrize("shield", [HAVE_SHIELD])
-def test_tiny_training_writes_checkpoint(local_ray, tmp_path, shield):
+def test_tiny_training_writes_checkpoint(local_ray, tmp_path, shield, monkeypatch):
     import torch
 
     batch = 60
@@ -211,3 +212,5 @@ def test_tiny_training_writes_checkpoint(local_ray, tmp_path, shield):
     env.close()
     with pytest.raises(ValueError, match="not a checkpoint"):
         rllib_ppo.load_policy(tmp_path)
+    monkeypatch.chdir(Path(checkpoint).parent)  # a relative path loads too
+    assert rllib_ppo.load_policy(Path(checkpoint).name) is not None

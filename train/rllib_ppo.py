@@ -361,10 +361,11 @@ def train(
 
 
 def load_policy(checkpoint: str | Path) -> Any:
-    """The shared RLModule (torch) from a checkpoint written by ``train``."""
+    """The shared RLModule (torch) from a checkpoint written by ``train`` (any path)."""
     from ray.rllib.core.rl_module.rl_module import RLModule
 
-    path = Path(checkpoint) / "learner_group" / "learner" / "rl_module" / POLICY_ID
+    # absolute: RLlib reads the path as a URI, and a relative one has no scheme
+    path = Path(checkpoint).resolve() / "learner_group" / "learner" / "rl_module" / POLICY_ID
     if not path.is_dir():
         raise ValueError(f"{checkpoint} is not a checkpoint of train.rllib_ppo (no {path})")
     return RLModule.from_checkpoint(str(path))

@@ -342,22 +342,25 @@ class UAVTrackEnv(ParallelEnv):
         self._check_can_act(actions)
         a = np.zeros((self.config.n_uavs, 4))
         for agent, act in actions.items():
-            try:
-                arr = np.asarray(act, dtype=np.float64)
-            except (TypeError, ValueError) as exc:
-                raise ValueError(
-                    f"action for {agent!r} cannot be read as 4 floats: {act!r}"
-                ) from exc
-            if arr.shape != (4,):
-                raise ValueError(
-                    f"action for {agent!r} has shape {arr.shape}; expected (4,) = "
-                    "[v_cx, v_cy, v_cz, omega_cy] normalised to [-1, 1]"
-                )
-            if not np.all(np.isfinite(arr)):
-                raise ValueError(f"action for {agent!r} is not finite: {arr.tolist()}")
-            a[self._index[agent]] = arr
+            a[self._index[agent]] = self.check_action(agent, act)
         clipped = np.any(np.abs(a) > 1.0, axis=1)
         return np.clip(a, -1.0, 1.0) * self._scale, clipped
+
+    @staticmethod
+    def check_action(agent: str, act: Any) -> np.ndarray:
+        """One agent's action as 4 finite float64s (not yet clipped); ValueError otherwise."""
+        try:
+            arr = np.asarray(act, dtype=np.float64)
+        except (TypeError, ValueError) as exc:
+            raise ValueError(f"action for {agent!r} cannot be read as 4 floats: {act!r}") from exc
+        if arr.shape != (4,):
+            raise ValueError(
+                f"action for {agent!r} has shape {arr.shape}; expected (4,) = "
+                "[v_cx, v_cy, v_cz, omega_cy] normalised to [-1, 1]"
+            )
+        if not np.all(np.isfinite(arr)):
+            raise ValueError(f"action for {agent!r} is not finite: {arr.tolist()}")
+        return arr
 
     def _check_can_act(self, actions: Any) -> None:
         """The episode is running and ``actions`` names exactly the live agents."""

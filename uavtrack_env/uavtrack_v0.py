@@ -4,7 +4,8 @@ from __future__ import annotations
 
 from typing import Any
 
-from pettingzoo.utils.conversions import parallel_to_aec
+from pettingzoo.utils.conversions import parallel_to_aec_wrapper
+from pettingzoo.utils.wrappers import OrderEnforcingWrapper
 
 from .env import UAVTrackEnv
 
@@ -19,6 +20,17 @@ def parallel_env(**kwargs: Any) -> UAVTrackEnv:
     return UAVTrackEnv(**kwargs)
 
 
+class _AECEnv(parallel_to_aec_wrapper):
+    """PettingZoo's parallel-to-AEC conversion that checks each agent's action when that agent
+    steps, not when the last one completes the joint action (a bad action changes nothing)."""
+
+    def step(self, action: Any) -> None:
+        agent = self.agent_selection
+        if action is not None and not (self.terminations[agent] or self.truncations[agent]):
+            UAVTrackEnv.check_action(agent, action)
+        super().step(action)
+
+
 def env(**kwargs: Any):
-    """The AEC version, through PettingZoo's ``parallel_to_aec``."""
-    return parallel_to_aec(UAVTrackEnv(**kwargs))
+    """The AEC version, as PettingZoo's ``parallel_to_aec`` builds it (order enforced)."""
+    return OrderEnforcingWrapper(_AECEnv(UAVTrackEnv(**kwargs)))
