@@ -1,6 +1,7 @@
-"""Speed of the target UKF: plain filterpy vs the vectorised subclass (median microseconds).
+"""Speed of the target UKF: plain filterpy, the vectorised subclass, and the team's filters
+stepped in one batched pass (`step_team`), per UAV-step (median microseconds).
 
-Run: /work/venv/bin/python benchmarks/ukf_speed.py [--n 3000]
+Run: python benchmarks/ukf_speed.py [--n 3000] [--team 3]
 """
 
 from __future__ import annotations
@@ -12,6 +13,7 @@ import numpy as np
 
 from uavtrack_env.config import DT, CameraConfig
 from uavtrack_env.estimation import Measurement, TargetEstimator, UKFConfig, make_filter
+from uavtrack_env.estimation.team import step_team
 from uavtrack_env.estimation.ukf import measurement_model
 
 CAM = CameraConfig()
@@ -59,10 +61,27 @@ def _estimator_bench(vectorized: bool, n: int) -> tuple[float, float]:
     return detected, lost
 
 
+def _team_bench(k: int, n: int) -> tuple[float, float]:
+    """`step_team` for k UAVs (a detection each, then all in a dropout), per UAV-step."""
+    ests = [TargetEstimator(CAM, UKFConfig(), DT) for _ in range(k)]
+    p, yaw = np.array([-8.0, 0.0, 4.0]), 0.0
+    meas = Measurement(330.0, 300.0, 8.0, 3.1)
+    for est in ests:
+        est.reset(meas, p, yaw)
+    seen = [(np.zeros(4), p, yaw, meas)] * k
+    lost = [(np.zeros(4), p, yaw, None)] * k
+    for _ in range(400):
+        step_team(ests, seen)
+    detected = _median_us(lambda: step_team(ests, seen), n) / k
+    return detected, _median_us(lambda: step_team(ests, lost), n) / k
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--n", type=int, default=3000, help="timed calls per measurement")
-    n = ap.parse_args().n
+    ap.add_argument("--team", type=int, default=3, help="UAVs of the batched team step")
+    args = ap.parse_args()
+    n = args.n
     pu_plain, p_plain = _filter_bench(False, n)
     pu_fast, p_fast = _filter_bench(True, n)
     st_plain, lost_plain = _estimator_bench(False, n)
@@ -75,6 +94,12 @@ def main() -> None:
         ("TargetEstimator.step (dropout)", lost_plain, lost_fast),
     ):
         print(f"{name:34s} {a:15.1f} {b:11.1f} {a / b:8.2f}x")
+    team_seen, team_lost = _team_bench(args.team, n)
+    print(
+        f"step_team, {args.team} UAVs, per UAV-step (detected / dropout): "
+        f"{team_seen:.1f} / {team_lost:.1f} us ({st_plain / team_seen:.1f}x / "
+        f"{lost_plain / team_lost:.1f}x plain filterpy)"
+    )
 
 
 if __name__ == "__main__":
