@@ -172,3 +172,36 @@ def test_a_silent_teammate_is_forgotten_after_the_timeout():
     assert table.belief().names == ()
     table.update({"c": np.array([19.0, 0.0, 1.0])})
     assert table.belief().names == ("c",) and table.belief().position_radius[0] == 0.0
+
+
+@pytest.mark.filterwarnings("ignore:CBFShield")
+def test_the_trusted_context_builds_the_rows_of_a_checked_one():
+    """The onboard stack builds its SafetyContext without re-checking the env's arrays; the
+    same values through SafetyContext's checks give bit-identical rows."""
+    import dataclasses
+
+    from uavtrack_env.safety import SafetyContext
+
+    env = uavtrack_v0.parallel_env(**WORLD)
+    shield = CBFShield(env)
+    _, infos = shield.reset(seed=3)
+    rng = np.random.default_rng(1)
+    compared = 0
+    for _ in range(40):
+        for agent in infos:
+            onboard = shield.onboard[agent]
+            ctx = onboard.context()
+            checked = SafetyContext(
+                **{f.name: getattr(ctx, f.name) for f in dataclasses.fields(ctx)}
+            )
+            mine, theirs = onboard.rows(), onboard.filter.rows(checked)
+            np.testing.assert_array_equal(mine.A, theirs.A)
+            np.testing.assert_array_equal(mine.b, theirs.b)
+            compared += ctx.target_position is not None
+        if not env.agents:
+            break
+        infos = shield.step({a: rng.uniform(-1, 1, 4) for a in env.agents})[4]
+    assert compared > 20
+    with pytest.raises(TypeError, match="no fields"):
+        SafetyContext.trusted(position=np.zeros(3), yaw=0.0, speed=1.0)
+    env.close()

@@ -290,9 +290,26 @@ class OnboardAgent:
         """The CBF-QP's view: own pose and velocity, the team-mates as believed (and, for
         second-order rows, their velocities), the known obstacles, the car's estimate."""
         own, est = info["own"], self.tracker.estimate
-        ctx = SafetyContext(
+        target: dict = {  # no estimate: no target rows (SafetyContext's defaults)
+            "target_velocity": np.zeros(3),
+            "target_half_extents": np.array(CAR_HALF_EXTENTS, float),
+            "target_heading": 0.0,
+        }
+        if est is not None:
+            margins = self.config.margins
+            cut_time = self._cut_steps * DT if margins.truncated_box_pad else np.zeros(2)
+            half, growth = car_box(est, margins, self._car_speed, cut_time)
+            target = {
+                "target_position": est.target_position,
+                "target_velocity": est.target_velocity,
+                "target_half_extents": half,
+                "target_heading": 0.0,
+                "target_growth": growth,
+            }
+        # The env's own arrays, already float64 and finite: no re-validation.
+        return SafetyContext.trusted(
             position=own["position"],
-            yaw=own["yaw"],
+            yaw=float(own["yaw"]),
             velocity=own["velocity"],
             neighbours=belief.positions,
             neighbour_velocities=belief.velocities if self._lag else None,
@@ -300,21 +317,9 @@ class OnboardAgent:
             neighbour_velocity_radius=belief.velocity_radius if self._lag else None,
             obstacle_centers=self.obstacle_centers,
             obstacle_half_extents=self.obstacle_half_extents,
-            target_position=None if est is None else est.target_position,
-            target_velocity=None if est is None else est.target_velocity,
+            neighbour_ids=tuple(self._ids[a] for a in belief.names),
+            **target,
         )
-        # Set in place (like SafetyContext's own __post_init__): dataclasses.replace would
-        # re-validate every array.
-        put = object.__setattr__
-        put(ctx, "neighbour_ids", tuple(self._ids[a] for a in belief.names))
-        if est is not None:
-            margins = self.config.margins
-            cut_time = self._cut_steps * DT if margins.truncated_box_pad else np.zeros(2)
-            half, growth = car_box(est, margins, self._car_speed, cut_time)
-            put(ctx, "target_half_extents", half)
-            put(ctx, "target_heading", 0.0)
-            put(ctx, "target_growth", growth)
-        return ctx
 
 
 def observe_team(agents: Sequence[OnboardAgent], infos: Sequence[dict]) -> None:

@@ -29,8 +29,8 @@ The first four are hard in the shield, the last two soft.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
-from typing import NamedTuple
+from dataclasses import MISSING, dataclass, field, fields
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -108,6 +108,24 @@ class SafetyContext:
     reachable set, `onboard.NeighbourTable`); None: exactly there."""
     neighbour_velocity_radius: np.ndarray | None = None
     """(k,) each neighbour's velocity is within this (m/s) of `neighbour_velocities`."""
+
+    @classmethod
+    def trusted(cls, **values: Any) -> SafetyContext:
+        """A context from values the caller guarantees are valid: float arrays of the shapes
+        above, finite, every optional one set or None; ``target_velocity``,
+        ``target_half_extents`` and ``target_heading`` are then required with a target. No
+        checks: the onboard stack builds one per UAV per step from the env's own data, where
+        checking costs about as much as the rows it feeds."""
+        ctx = object.__new__(cls)
+        for f in fields(cls):
+            if f.name in values:
+                value = values.pop(f.name)
+            else:
+                value = f.default if f.default_factory is MISSING else f.default_factory()
+            object.__setattr__(ctx, f.name, value)
+        if values:
+            raise TypeError(f"SafetyContext has no fields {sorted(values)}")
+        return ctx
 
     def __post_init__(self) -> None:
         put = object.__setattr__
