@@ -360,3 +360,17 @@ def test_closed_loop_forward_invariance(policy, n, model):
     worst = run_closed_loop(n, POLICIES[policy], seed=n, obstacle_model=model)
     for name, h in worst.items():
         assert h >= -1e-9, (name, h)
+
+
+def test_least_barrier_per_family_is_the_minimum_over_its_rows():
+    from uavtrack_env.safety import ShieldReport
+    from uavtrack_env.safety.cbf import KIND_NAMES, CBFRows
+
+    rng = np.random.default_rng(4)
+    for size in (1, 5, 40):
+        kind = rng.integers(0, 6, size)  # families in any order, repeated
+        h = rng.normal(size=size)
+        rows = CBFRows(np.zeros((size, 3)), h, h, h, h, h, kind, np.arange(size))
+        got = ShieldReport("optimal", False, 0.0, 0.0, [], rows=rows).min_h_by_family
+        want = {KIND_NAMES[k]: float(h[kind == k].min()) for k in sorted(set(kind.tolist()))}
+        assert got == want and list(got) == list(want)

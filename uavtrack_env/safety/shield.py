@@ -184,10 +184,13 @@ class ShieldReport:
         """The least barrier value h of each row family present (`KIND_NAMES`)."""
         if self.rows is None or not len(self.rows.h):
             return {}
-        out = {}
-        for kind in np.unique(self.rows.kind):
-            out[KIND_NAMES[kind]] = float(self.rows.h[self.rows.kind == kind].min())
-        return out
+        kinds = self.rows.kind
+        starts = np.flatnonzero(np.r_[True, kinds[1:] != kinds[:-1]])  # runs of one family
+        out: dict[str, float] = {}
+        for kind, low in zip(kinds[starts].tolist(), np.minimum.reduceat(self.rows.h, starts)):
+            name = KIND_NAMES[kind]
+            out[name] = min(out.get(name, math.inf), float(low))
+        return dict(sorted(out.items(), key=lambda kv: KIND_NAMES.index(kv[0])))
 
     @property
     def h(self) -> dict[str, float]:
