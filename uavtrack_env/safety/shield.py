@@ -187,9 +187,10 @@ class ShieldReport:
         kinds = self.rows.kind
         starts = np.flatnonzero(np.r_[True, kinds[1:] != kinds[:-1]])  # runs of one family
         out: dict[str, float] = {}
-        for kind, low in zip(kinds[starts].tolist(), np.minimum.reduceat(self.rows.h, starts)):
+        lows = np.minimum.reduceat(self.rows.h, starts)
+        for kind, low in zip(kinds[starts].tolist(), lows.tolist(), strict=True):
             name = KIND_NAMES[kind]
-            out[name] = min(out.get(name, math.inf), float(low))
+            out[name] = min(out.get(name, math.inf), low)
         return dict(sorted(out.items(), key=lambda kv: KIND_NAMES.index(kv[0])))
 
     @property
