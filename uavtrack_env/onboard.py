@@ -5,9 +5,10 @@ around any policy. Both therefore see exactly a real UAV's information: the dete
 own GPS/IMU state, its neighbours' messages and the known obstacle map, never ``info["truth"]``.
 
 The car is known only through the UKF. Its row (a hard row keeping the UAV out of the car) uses a
-heading-free box (horizontal half extent = the car's half diagonal) inflated by
-``target_margin`` plus ``target_sigmas`` standard deviations of the estimated position, capped at
-``target_margin_max`` (`ShieldMargins`).
+heading-free box (horizontal half extent = the car's half diagonal) that stands on the ground,
+inflated by ``target_margin`` plus ``target_sigmas`` standard deviations of the estimated
+position (capped at ``target_margin_max``), by up to the car's size while the detector's box is
+cut by the image border, and growing while the car is undetected (`car_box`, `ShieldMargins`).
 """
 
 from __future__ import annotations

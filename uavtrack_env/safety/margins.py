@@ -44,8 +44,9 @@ class ShieldMargins:
     truncated_box_pad: bool = True
     """While the car's box is cut by the image border, its centre (u, v) is biased inwards and
     the UKF's position with it, by up to the part of the car outside the image: pad the car's
-    box by the car's footprint half diagonal horizontally (a cut in u) and its half height
-    vertically (a cut in v) until ``truncation_recovery`` s of uncut detections have passed."""
+    box, growing at ``target_speed_max``, by up to the car's footprint half diagonal
+    horizontally (a cut in u) and its half height vertically (a cut in v, unless
+    ``car_on_ground``) until ``truncation_recovery`` s of uncut detections have passed."""
     truncation_recovery: float = 0.5
     """Uncut detection time (s) after which the UKF has shed a truncated box's bias."""
     message_timeout: float = 0.5
