@@ -38,7 +38,8 @@ from .target import CAR_HALF_EXTENTS
 
 
 class OnboardTracker:
-    """One UAV's UKF, fed step by step from its info; ``estimate`` is None until a detection."""
+    """One UAV's UKF, fed step by step from its info (`update_trackers`); ``estimate`` is None
+    until a detection."""
 
     def __init__(self, camera: CameraConfig, cfg: UKFConfig | None = None) -> None:
         self.estimator = TargetEstimator(camera, cfg or UKFConfig())
@@ -47,14 +48,11 @@ class OnboardTracker:
     def reset(self) -> None:
         self.estimate = None
 
-    def update(self, info: dict) -> Estimate | None:
-        """Advance the filter with this step's info (measurement and own motion)."""
-        return update_trackers([self], [info])[0]
-
 
 def update_trackers(trackers: Sequence[OnboardTracker], infos: Sequence[dict]) -> list:
-    """`OnboardTracker.update` for several UAVs, their running filters stepped in one batched
-    pass (`step_team`); returns each tracker's estimate (None until its first detection)."""
+    """Advance each UAV's filter with its info (measurement and own motion), the running filters
+    in one batched pass (`step_team`); returns each tracker's estimate (None until its first
+    detection)."""
     running, inputs = [], []
     for tracker, info in zip(trackers, infos, strict=True):
         own, m = info["own"], info["measurement"]
