@@ -184,14 +184,11 @@ class ShieldReport:
         """The least barrier value h of each row family present (`KIND_NAMES`)."""
         if self.rows is None or not len(self.rows.h):
             return {}
-        kinds = self.rows.kind
-        starts = np.flatnonzero(np.r_[True, kinds[1:] != kinds[:-1]])  # runs of one family
-        out: dict[str, float] = {}
-        lows = np.minimum.reduceat(self.rows.h, starts)
-        for kind, low in zip(kinds[starts].tolist(), lows.tolist(), strict=True):
-            name = KIND_NAMES[kind]
-            out[name] = min(out.get(name, math.inf), low)
-        return dict(sorted(out.items(), key=lambda kv: KIND_NAMES.index(kv[0])))
+        low: dict[int, float] = {}
+        for kind, h in zip(self.rows.kind.tolist(), self.rows.h.tolist(), strict=True):
+            if kind not in low or h < low[kind]:
+                low[kind] = h
+        return {KIND_NAMES[kind]: low[kind] for kind in sorted(low)}
 
     @property
     def h(self) -> dict[str, float]:
