@@ -7,8 +7,10 @@ car_box`); the car's row is safe only while the true car lies inside that box. T
 policy families (`baselines.shield_adversary`) under `CBFShield` on seeded random worlds (n = 3,
 lag dynamics, detector dropouts) and, at every agent-step with an estimate, checks the eight
 corners of the true car (its true heading) against the box. It prints, per family, the share of
-agent-steps with a corner outside, the worst excess (m), and the UKF's horizontal position error
-(median, 99th percentile, max) with its ratio to the filter's own standard deviation.
+agent-steps with a corner outside, the worst excess (m), the same share for the box the car's own
+footprint would give if it were oriented along the estimated velocity (same pads), and the UKF's
+horizontal position error (median, 99th percentile, max) with its ratio to the filter's own
+standard deviation.
 """
 
 from __future__ import annotations
@@ -29,11 +31,13 @@ _CORNERS = np.array(list(itertools.product((-1.0, 1.0), repeat=3))) * CAR_HALF_E
 @dataclass
 class Containment:
     """Tallies of one family: agent-steps with an estimate, those with the car outside the box,
-    the worst excess (m), and the UKF's horizontal errors (m) and error / std ratios."""
+    the worst excess (m), those with the car outside an oriented footprint box, and the UKF's
+    horizontal errors (m) and error / std ratios."""
 
     steps: int = 0
     outside: int = 0
     worst: float = 0.0
+    oriented_outside: int = 0
     errors: list[float] = field(default_factory=list)
     ratios: list[float] = field(default_factory=list)
 
@@ -74,6 +78,14 @@ def measure(
                         ctx.target_heading,
                         ctx.target_half_extents,
                     )
+                    # the car's footprint along the estimated velocity, with the same pads
+                    half = ctx.target_half_extents.copy()
+                    half[:2] += CAR_HALF_EXTENTS[:2] - np.hypot(*CAR_HALF_EXTENTS[:2])
+                    vx, vy = est.target_velocity[:2]
+                    oriented = car_excess(
+                        info["truth"], ctx.target_position, float(np.arctan2(vy, vx)), half
+                    )
+                    out.oriented_outside += oriented > 0.0
                     out.steps += 1
                     out.outside += excess > 0.0
                     out.worst = max(out.worst, excess)
@@ -104,15 +116,16 @@ def main(argv: list[str] | None = None) -> None:
     config = expert_config_from(args.preset, args.set)
     seeds = [args.seed + k for k in range(args.worlds)]
     print(
-        "| family | agent-steps | car outside box | worst excess (m) | UKF horizontal error "
-        "median / p99 / max (m) | error / std median / p99 |"
+        "| family | agent-steps | car outside the box | worst excess (m) | outside an oriented "
+        "footprint | UKF horizontal error median / p99 / max (m) | error / std median / p99 |"
     )
-    print("|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|")
     for family in args.families:
         m = measure(family, seeds, args.steps, config)
         e, r = np.asarray(m.errors), np.asarray(m.ratios)
         print(
             f"| {family} | {m.steps} | {m.outside / max(m.steps, 1):.2%} | {m.worst:.3f} | "
+            f"{m.oriented_outside / max(m.steps, 1):.2%} | "
             f"{np.median(e):.2f} / {np.percentile(e, 99):.2f} / {e.max():.2f} | "
             f"{np.median(r):.1f} / {np.percentile(r, 99):.1f} |"
         )
