@@ -1,0 +1,99 @@
+"""Soak: many resets and steps in one process, every value finite, memory flat, clients freed.
+
+Phase 1 steps one ParallelEnv (random world, n = 3, random actions) for ``--steps`` steps over
+``--resets`` episodes, checking that every observation, reward and info value is finite, and
+prints the process's resident memory (RSS) after the first episode and at the end. Phase 2
+creates and closes ``--envs`` envs (and drops as many unclosed ones for the garbage collector)
+and counts the PyBullet clients still connected.
+
+Run: python benchmarks/soak.py [--steps 1000000] [--resets 1000] [--envs 500]
+"""
+
+from __future__ import annotations
+
+import argparse
+import gc
+import math
+import resource
+import time
+
+import numpy as np
+import pybullet as p
+from tqdm import tqdm
+
+from uavtrack_env import uavtrack_v0
+
+
+def _rss_mb() -> float:
+    """Resident set size of this process (MB), from /proc (Linux)."""
+    with open("/proc/self/statm") as f:
+        return int(f.read().split()[1]) * resource.getpagesize() / 2**20
+
+
+def _finite(tree) -> bool:
+    if isinstance(tree, dict):
+        return all(_finite(v) for v in tree.values())
+    if isinstance(tree, float | np.floating):
+        return math.isfinite(tree)
+    if isinstance(tree, np.ndarray) and tree.dtype.kind == "f":
+        return bool(np.isfinite(tree).all())
+    return True
+
+
+def soak_steps(steps: int, resets: int, seed: int) -> None:
+    env = uavtrack_v0.parallel_env(scenario="random", terminate_on_collision="agent")
+    per_episode = max(1, steps // resets)
+    rng = np.random.default_rng(seed)
+    rss0, done, episodes, t0 = None, 0, 0, time.perf_counter()
+    with tqdm(total=steps, unit="step") as bar:
+        while done < steps:
+            obs, infos = env.reset(seed=seed + episodes)
+            for _ in range(per_episode):
+                if not env.agents or done >= steps:
+                    break
+                acts = {a: rng.uniform(-1, 1, 4).astype(np.float32) for a in env.agents}
+                obs, rewards, _te, _tr, infos = env.step(acts)
+                if not (_finite(obs) and _finite(rewards) and _finite(infos)):
+                    raise RuntimeError(f"a non-finite value at episode {episodes}, step {done}")
+                done += 1
+                bar.update()
+            episodes += 1
+            if rss0 is None:
+                rss0 = _rss_mb()
+    env.close()
+    wall = time.perf_counter() - t0
+    print(
+        f"{done} steps over {episodes} resets in {wall:.0f} s ({done / wall:.0f} steps/s); "
+        f"RSS after the first episode {rss0:.1f} MB, at the end {_rss_mb():.1f} MB "
+        f"(growth {_rss_mb() - rss0:+.1f} MB)"
+    )
+
+
+def soak_clients(envs: int) -> None:
+    cids = []
+    for k in range(envs):
+        env = uavtrack_v0.parallel_env(scenario="random")
+        env.reset(seed=k)
+        cids.append(env.unwrapped.world.cid)
+        env.close()
+        dropped = uavtrack_v0.parallel_env(scenario="random")  # never closed
+        cids.append(dropped.unwrapped.world.cid)
+        del dropped
+    gc.collect()
+    still = sum(p.getConnectionInfo(physicsClientId=c)["isConnected"] for c in cids)
+    print(f"{envs} envs closed and {envs} dropped: {still} PyBullet clients still connected")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--steps", type=int, default=1_000_000)
+    ap.add_argument("--resets", type=int, default=1000)
+    ap.add_argument("--envs", type=int, default=500)
+    ap.add_argument("--seed", type=int, default=0)
+    args = ap.parse_args()
+    soak_steps(args.steps, args.resets, args.seed)
+    soak_clients(args.envs)
+
+
+if __name__ == "__main__":
+    main()
