@@ -698,8 +698,4 @@ class UAVTrackEnv(ParallelEnv):
         self.world.close()
 
     def __reduce_ex__(self, protocol):
-        raise TypeError(
-            "a UAVTrackEnv owns a live PyBullet client, so it cannot be copied or pickled; "
-            "build a new env from the same arguments (uavtrack_v0.parallel_env(**kwargs), or a "
-            "functools.partial of it, which pickles)"
-        )
+        return self.world.__reduce_ex__(protocol)  # refuses: the world owns a live client

@@ -182,9 +182,9 @@ class World:
 
     def __reduce_ex__(self, protocol):
         raise TypeError(
-            "a uavtrack world owns a live PyBullet client, which cannot be copied or pickled; "
-            "build a new env from the same arguments instead (uavtrack_v0.parallel_env(**kwargs) "
-            "or a functools.partial of it, which pickles)"
+            "a uavtrack env owns a live PyBullet client, which cannot be copied or pickled; build "
+            "a new env from the same arguments instead (uavtrack_v0.parallel_env(**kwargs), or a "
+            "functools.partial of it, which pickles)"
         )
 
 

@@ -94,7 +94,7 @@ def step_team(estimators: Sequence[TargetEstimator], inputs: Sequence[StepInput]
     points = ukf.points_fn
     lam = points.alpha**2 * (points.n + points.kappa) - points.n
     Wm, Wc = ukf.Wm, ukf.Wc
-    max_std = np.asarray(cfg.max_std, dtype=float)
+    max_std = first._max_std
 
     # predict (10): sigma points through fx, unscented transform with Q
     x = np.stack([est.ukf.x for est in estimators])

@@ -240,9 +240,8 @@ def process_model(
     """
     xt = np.moveaxis(x, -1, 0)
     vq_cam = np.moveaxis(world_to_cam_vec(x[..., 7:10], yaw), -1, 0)
-    sdot = np.stack(
-        feature_rates(xt[0:4], np.moveaxis(u, -1, 0), vq_cam), -1
-    )  # eq. (15) rows of (14)
+    # eq. (15) rows of (14)
+    sdot = np.stack(feature_rates(xt[0:4], np.moveaxis(u, -1, 0), vq_cam), -1)
     out = x.copy()
     out[..., 0:4] += dt * sdot
     out[..., PSI] = wrap_angle(out[..., PSI])
