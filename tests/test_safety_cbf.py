@@ -17,10 +17,10 @@ from uavtrack_env.safety.cbf import (
     TARGET,
     UAV,
     h_box,
-    occluder_points,
     target_rows,
 )
 from uavtrack_env.safety.config import CBFConfig
+from uavtrack_env.safety.occlusion import occluder_points
 
 EPS = 1e-6
 

@@ -35,6 +35,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from uavtrack_env.safety.config import CBFConfig
+from uavtrack_env.safety.occlusion import POINT_MODES, occlusion_family
 
 KIND_NAMES = ("uav", "obstacle", "target", "floor", "connect", "occlusion")
 """Row family names, indexed by `CBFRows.kind`."""
@@ -441,167 +442,6 @@ def floor_rows(p: np.ndarray, cbf: CBFConfig):
 _FLOOR_A = np.array(((0.0, 0.0, -1.0),))
 
 
-def _edge_geometry() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The 12 edges of a unit box: start corner signs (12, 3), unit directions (12, 3), and the
-    axis each edge runs along (12,)."""
-    starts, dirs, axes = [], [], []
-    for k in range(3):
-        for s1 in (-1.0, 1.0):
-            for s2 in (-1.0, 1.0):
-                sign = [s1, s2]
-                sign.insert(k, -1.0)
-                starts.append(sign)
-                dirs.append(np.eye(3)[k])
-                axes.append(k)
-    return np.array(starts), np.array(dirs), np.array(axes)
-
-
-_EDGE_START, _EDGE_DIR, _EDGE_AXIS = _edge_geometry()
-
-
-def _least_angle_on_segments(
-    w: np.ndarray, e: np.ndarray, length: np.ndarray, n: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
-    """Largest cos(angle to unit n) on segments p + w + t e, t in [0, length] (e unit); returns
-    (cos, t) per segment.
-
-    On a line cos = (a + b t) / sqrt(c0 + 2 c1 t + t^2) with a = w.n, b = e.n, c0 = |w|^2,
-    c1 = w.e; its only stationary point is t = (a c1 - b c0) / (b c1 - a), so the largest cos
-    on the segment is there (clipped) or at an end.
-    """
-    a = w @ n
-    b = e @ n
-    c0 = np.einsum("...i,...i->...", w, w)
-    c1 = np.einsum("...i,...i->...", w, e)
-    den = b * c1 - a
-    safe = np.where(np.abs(den) > 1e-12, den, 1e-12)
-    ts = np.stack(
-        [np.zeros_like(a), length, np.clip((a * c1 - b * c0) / safe, 0.0, length)], axis=-1
-    )
-    cos = (a[..., None] + b[..., None] * ts) / np.sqrt(
-        np.maximum(c0[..., None] + 2.0 * c1[..., None] * ts + ts * ts, 1e-300)
-    )
-    k = np.argmax(cos, axis=-1)[..., None]
-    return np.take_along_axis(cos, k, -1)[..., 0], np.take_along_axis(ts, k, -1)[..., 0]
-
-
-def occluder_points(
-    p: np.ndarray, centers: np.ndarray, half: np.ndarray, q: np.ndarray, mode: str
-) -> np.ndarray:
-    """p_o^j of eq. (38) per obstacle: its centre (paper), or the point of least angle to the
-    line of sight n = q - p on the box's vertical axis ('axis') or on its 12 edges ('edges').
-
-    theta is then the minimum over that set. Its gradient at the minimiser is the gradient of
-    theta at that fixed point (Danskin), so the rows of `occlusion_rows` stay exact. The 'edges'
-    minimum is the least angle of the whole box whenever the sight line misses the box (the
-    angle is quasi-convex on each face plane, so a face's minimum lies on its boundary).
-    """
-    if mode == "centre" or not len(centers):
-        return centers
-    n = q - p
-    n = n / max(float(np.linalg.norm(n)), 1e-12)
-    if mode == "axis":
-        # `_least_angle_on_segments` for the vertical axis, written out (the default path):
-        # with t = z - p_z, cos = (a + t n_z) / sqrt(b^2 + t^2), a the horizontal part of
-        # (c - p).n and b the horizontal distance; the stationary point is t = n_z b^2 / a.
-        w = centers[:, :2] - p[:2]
-        a = w @ n[:2]
-        b2 = np.einsum("ij,ij->i", w, w)
-        lo, hi = centers[:, 2] - half[:, 2] - p[2], centers[:, 2] + half[:, 2] - p[2]
-        safe_a = np.where(np.abs(a) > 1e-12, a, 1e-12)
-        t = np.stack([lo, hi, np.clip(n[2] * b2 / safe_a, lo, hi)], 1)  # (m, 3) candidates
-        cos = (a[:, None] + t * n[2]) / np.sqrt(b2[:, None] + t * t + 1e-300)
-        best = t[np.arange(len(t)), np.argmax(cos, axis=1)]
-        return np.column_stack([centers[:, :2], p[2] + best])
-    starts = centers[:, None, :] + _EDGE_START * half[:, None, :]  # (m, 12, 3)
-    length = 2.0 * half[:, _EDGE_AXIS]  # (m, 12)
-    cos, t = _least_angle_on_segments(starts - p, _EDGE_DIR, length, n)
-    best = np.argmax(cos, axis=1)
-    rows = np.arange(len(centers))
-    return starts[rows, best] + t[rows, best, None] * _EDGE_DIR[best]
-
-
-def occlusion_rows(
-    p: np.ndarray,
-    centers: np.ndarray,
-    q: np.ndarray,
-    vq: np.ndarray,
-    cbf,
-    radius: np.ndarray | None = None,
-):
-    """Occlusion rows (41)-(45) for j in N_oi = {||p_o^j - p|| <= ||n||}, n = r_q - p (36).
-
-    ``centers`` are the occluder points p_o^j (see `occluder_points`). With ``radius`` (the
-    boxes' horizontal half-diagonals r_j), h = theta - theta* - asin(r_j / b_j), b_j the
-    horizontal distance to the box's axis: the keep-out cone grows by the obstacle's angular
-    radius (not in the paper).
-
-    With x = cos(theta) = d.n / (|d||n|) and d = p_o - p, (41) reads
-    ``theta-dot = -(dx/dd . d-dot + dx/dn . n-dot) / sin(theta)``, where
-    ``dx/dd = n/(|d||n|) - x d/|d|^2`` and ``dx/dn = d/(|d||n|) - x n/|n|^2``.
-
-    * 'paper' (43): n-dot = 0 and d-dot = -V, so A = -(1/sin) dx/dd and b = gamma_o h (45).
-    * 'moving-target': n-dot = V_q - V, so A = -(1/sin)(dx/dd + dx/dn) and the target term
-      ``drift = -(1/sin) dx/dn . V_q`` goes to b.
-
-    The rows are soft in the shield; theta = 0 or pi makes 1/sin singular and is clamped.
-    """
-    n = q - p
-    nn2 = float(n @ n)
-    d = centers - p
-    nd2 = np.einsum("ij,ij->i", d, d)
-    idx = ((nd2 <= nn2) & (nd2 > 1e-18)).nonzero()[0]
-    if nn2 < 1e-18 or not len(idx):
-        return _EMPTY3, np.zeros(0), None, idx[:0]
-    d = d.take(idx, 0)
-    A, h, drift = _angle_rows(d, nd2.take(idx), n, nn2, vq, cbf)
-    if radius is not None:
-        A, h = _widen_by_radius(A, h, d, radius.take(idx))
-    return A, h, drift, idx
-
-
-def _angle_rows(
-    d: np.ndarray, nd2: np.ndarray, n: np.ndarray, nn2: float, vq: np.ndarray, cbf
-) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
-    """A, h = theta - theta* (40) and the target drift (None for 'paper') of the rows (41)-(45)
-    for the occluders d = p_o - p (|d|^2 = nd2) and the sight line n (|n|^2 = nn2); see
-    `occlusion_rows`."""
-    inv_dn = 1.0 / np.sqrt(nd2 * nn2)
-    x = np.minimum(np.maximum((d @ n) * inv_dn, -1.0), 1.0)
-    inv_sin = 1.0 / np.sqrt(np.maximum(1.0 - x * x, 1e-12))
-    h = np.arccos(x) - cbf.theta_star
-    k_n = inv_sin * inv_dn  # A = -k_n n + k_d d  for the paper's model
-    k_d = inv_sin * x / nd2
-    if cbf.occlusion_model == "paper":
-        return k_d[:, None] * d - k_n[:, None] * n, h, None
-    # dx/dn adds -(1/sin)(d/(|d||n|) - x n/|n|^2) to A.
-    k_d2 = k_d - k_n
-    k_n2 = k_n - inv_sin * x / nn2
-    A = k_d2[:, None] * d - k_n2[:, None] * n
-    drift = -(inv_sin * inv_dn) * (d @ vq) + (inv_sin * x / nn2) * float(n @ vq)
-    return A, h, drift
-
-
-def _widen_by_radius(
-    A: np.ndarray, h: np.ndarray, d: np.ndarray, radius: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
-    """h - beta and its row, beta = asin(r_j / b_j) the box's angular radius (not in the paper).
-
-    b_j is the horizontal distance to the box's axis (independent of the occluder's height, so
-    Danskin's argument of `occluder_points` still holds); A = -dh/dp gains
-    d beta/dp = r w / (b^3 sqrt(1 - r^2/b^2)) with w the horizontal part of p_o - p.
-    """
-    b2 = np.maximum(d[:, 0] ** 2 + d[:, 1] ** 2, 1e-18)
-    ratio = radius / np.sqrt(b2)
-    clipped = ratio >= 0.99
-    ratio = np.minimum(ratio, 0.99)
-    h = h - np.arcsin(ratio)
-    k_b = np.where(clipped, 0.0, ratio / (b2 * np.sqrt(1.0 - ratio * ratio)))
-    A = A.copy()
-    A[:, :2] += k_b[:, None] * d[:, :2]
-    return A, h
-
-
 class RowBuilder:
     """Builds all rows of UAV i's QP (47) from its `SafetyContext` (one per filter).
 
@@ -652,22 +492,19 @@ class RowBuilder:
         self._layouts: dict[tuple, tuple] = {}
 
     def _occlusion_family(self, ctx: SafetyContext):
-        """The occlusion rows (45) of the boxes that may be in N_oi. A box whose nearest possible
-        point is farther than the car (``||c - p|| - ||half|| > ||n||``) cannot be: its occluder
-        point is not computed (the 'edges' search is the costliest part of the rows)."""
-        cbf, p, q = self.cbf, ctx.position, ctx.target_position
-        oc, half = ctx.obstacle_centers, ctx.obstacle_half_extents
-        reach = float(np.linalg.norm(q - p))
-        near = np.linalg.norm(oc - p, axis=1) - np.linalg.norm(half, axis=1) <= reach
-        cand = near.nonzero()[0]
-        if not len(cand):
-            return _NONE
-        if len(cand) < len(oc):
-            oc, half = oc[cand], half[cand]
-        points = occluder_points(p, oc, half, q, cbf.occlusion_point)
-        radius = np.hypot(half[:, 0], half[:, 1]) if cbf.occlusion_size_margin else None
-        A, h, drift, idx = occlusion_rows(p, points, q, ctx.target_velocity, cbf, radius)
-        return A, h, drift, cand[idx]
+        """The occlusion rows (45) of the boxes that may be in N_oi (`occlusion_family`)."""
+        cbf = self.cbf
+        return occlusion_family(
+            ctx.position,
+            ctx.target_position,
+            ctx.target_velocity,
+            ctx.obstacle_centers,
+            ctx.obstacle_half_extents,
+            cbf.theta_star,
+            POINT_MODES.index(cbf.occlusion_point),
+            cbf.occlusion_model == "moving-target",
+            cbf.occlusion_size_margin,
+        )
 
     def _layout(self, sizes: tuple) -> tuple:
         lay = self._layouts.get(sizes)

@@ -7,6 +7,7 @@ import math
 from dataclasses import dataclass
 from typing import Literal
 
+from uavtrack_env.safety.occlusion import POINT_MODES
 from uavtrack_env.validation import Fields as _Fields
 from uavtrack_env.validation import require as _require
 
@@ -71,7 +72,7 @@ class CBFConfig:
             f.number(name, lo=0, lo_open=True)
         f.number("z_min", lo=0)
         f.choice("occlusion_model", ("paper", "moving-target"))
-        f.choice("occlusion_point", ("centre", "axis", "edges"))
+        f.choice("occlusion_point", POINT_MODES)
         f.flag("occlusion_size_margin")
         if self.resolved:
             self._check_ranges()
