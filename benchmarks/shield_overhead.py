@@ -96,6 +96,7 @@ def main() -> None:
     if not args.all_cores and hasattr(os, "sched_setaffinity"):
         os.sched_setaffinity(0, {min(os.sched_getaffinity(0))})
 
+    run(True, 1.0, 50, args.seed + 10**6)  # warm-up: loads the compiled kernels (numba's cache)
     for label, amp in (("random actions", 1.0), ("small actions", 0.05)):
         bare_t, shield_t, cert, ukf, obs, act = [], [], [], [], [], []
         for r in range(args.repeats):

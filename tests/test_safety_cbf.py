@@ -9,6 +9,7 @@ import pytest
 from scipy.optimize import minimize_scalar
 
 from uavtrack_env.safety import SafetyContext, SafetyFilter, build_rows, check_eq28
+from uavtrack_env.safety.barrier_rows import target_row
 from uavtrack_env.safety.cbf import (
     CONNECT,
     FLOOR,
@@ -17,7 +18,6 @@ from uavtrack_env.safety.cbf import (
     TARGET,
     UAV,
     h_box,
-    target_rows,
 )
 from uavtrack_env.safety.config import CBFConfig
 from uavtrack_env.safety.occlusion import occluder_points
@@ -342,9 +342,9 @@ def test_inside_the_car_box_the_way_out_is_never_its_bottom(below):
     cbf = CBFConfig().resolve()
     q, half = np.array([0.0, 0.0, 0.75]), np.array([3.0, 3.0, 1.0])
     p = np.array([0.4, -0.2, 0.3 if below else 1.5])
-    A, h, _drift, _ = target_rows(p, q, np.zeros(3), half, 0.0, cbf)
-    assert h[0] == pytest.approx(h_box(p, q, half, cbf.obstacle_clearance, grounded=True)[0])
+    ax, ay, az, h, _drift = target_row(p, q, np.zeros(3), half, 0.0, cbf.obstacle_clearance, 0.0)
+    assert h == pytest.approx(h_box(p, q, half, cbf.obstacle_clearance, grounded=True)[0])
     top = q[2] + half[2] - p[2]
-    assert h[0] == pytest.approx(-(top**2) - cbf.obstacle_clearance**2)
+    assert h == pytest.approx(-(top**2) - cbf.obstacle_clearance**2)
     # -grad h . V <= b: the row asks for an upward velocity
-    assert A[0, 2] < 0 and A[0, 0] == 0 and A[0, 1] == 0
+    assert az < 0 and ax == 0 and ay == 0

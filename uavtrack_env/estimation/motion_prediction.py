@@ -68,6 +68,26 @@ def fit_polynomial(
             f"a degree-{order} fit needs at least {order + 1} distinct sample times, got "
             f"{np.unique(t).size}"
         )
+    if velocities is not None and velocity_weight > 0:
+        velocities = _check_series("velocities", velocities, n)
+    else:
+        velocities = None
+    te = float(t.max()) if t_eval is None else float(t_eval)
+    if not np.isfinite(te):
+        raise ValueError(f"t_eval must be finite, got {t_eval}")
+    return _fit(t, p, velocities, order, velocity_weight, te)
+
+
+def _fit(
+    t: np.ndarray,
+    p: np.ndarray,
+    v: np.ndarray | None,
+    order: int,
+    velocity_weight: float,
+    te: float,
+) -> MotionFit:
+    """`fit_polynomial` on checked inputs (``v`` None: positions only)."""
+    n = t.size
     t_last = float(t.max())
     span = max(float(t_last - t.min()), 1e-9)
     tau = (t - t_last) / span
@@ -75,8 +95,7 @@ def fit_polynomial(
     basis = np.vander(tau, order + 1, increasing=True)  # tau^k, k = 0..order
     rows = [basis]
     rhs = [p]
-    if velocities is not None and velocity_weight > 0:
-        v = _check_series("velocities", velocities, n)
+    if v is not None:
         dbasis = np.zeros((n, order + 1))
         dbasis[:, 1:] = basis[:, :-1] * (powers[1:] / span)
         sw = np.sqrt(velocity_weight)
@@ -85,9 +104,6 @@ def fit_polynomial(
     M, Y = np.vstack(rows), np.vstack(rhs)
     # normal equations: tau in [-1, 0] keeps M^T M well conditioned for the low orders used
     coef = np.linalg.solve(M.T @ M, M.T @ Y)  # (order+1, 3)
-    te = t_last if t_eval is None else float(t_eval)
-    if not np.isfinite(te):
-        raise ValueError(f"t_eval must be finite, got {t_eval}")
     x = (te - t_last) / span
     b0 = x**powers
     b1 = np.zeros(order + 1)
@@ -153,11 +169,7 @@ class MotionHistory:
         mask = self._t >= t_new - self.window
         if int(mask.sum()) < self.min_samples:
             return None
-        return fit_polynomial(
-            self._t[mask],
-            self._p[mask],
-            self._v[mask],
-            order=self.order,
-            velocity_weight=self.velocity_weight,
-            t_eval=t_eval,
-        )
+        # the samples are finite and one control period apart: no checks needed
+        v = self._v[mask] if self.velocity_weight > 0 else None
+        te = t_new if t_eval is None else float(t_eval)
+        return _fit(self._t[mask], self._p[mask], v, self.order, self.velocity_weight, te)

@@ -34,6 +34,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
+from uavtrack_env.safety.barrier_rows import box_sdists, first_order_rows
 from uavtrack_env.safety.config import CBFConfig
 from uavtrack_env.safety.occlusion import POINT_MODES, occlusion_family
 
@@ -253,37 +254,6 @@ def h_connect(p: np.ndarray, q: np.ndarray, r_c: float) -> np.ndarray:
     return -h_pair(p, q, r_c)
 
 
-def _box_distance_grad(
-    local: np.ndarray, half: np.ndarray, grounded: bool = False
-) -> tuple[np.ndarray, np.ndarray]:
-    """Signed squared box distance and its gradient for points in box coordinates (m, 3).
-
-    Outside: ``dist^2`` with gradient ``2 (p - closest point)``. Inside (penetration depth e to
-    the nearest face with outward normal n): ``-e^2`` with gradient ``2 e n``. The function is
-    C^1 across the surface (value and gradient both vanish there). ``grounded``: the box
-    stands on the ground, so its bottom face is never the way out (`target_rows`).
-    """
-    excess = np.abs(local) - half
-    outside = np.maximum(excess, 0.0)
-    grad = np.copysign(2.0 * outside, local)
-    d2 = np.einsum("ij,ij->i", outside, outside)
-    inside = np.flatnonzero(excess.max(axis=1) < 0.0)
-    if len(inside):
-        ex = excess[inside]
-        sign = np.sign(local[inside])
-        if grounded:
-            ex[:, 2] = local[inside, 2] - np.broadcast_to(half, local.shape)[inside, 2]
-            sign[:, 2] = 1.0
-        rows = np.arange(len(inside))
-        axis = np.argmax(ex, axis=1)  # the face closest to the point (least negative excess)
-        depth = -ex[rows, axis]
-        g = np.zeros_like(ex)
-        g[rows, axis] = 2.0 * depth * sign[rows, axis]
-        grad[inside] = g
-        d2[inside] = -(depth**2)
-    return d2, grad
-
-
 def h_box(
     p: np.ndarray,
     centers: np.ndarray,
@@ -295,13 +265,13 @@ def h_box(
     """Box barrier ``sdist(p, box)^2 - clearance^2`` for boxes rotated by ``yaw`` about z.
 
     ``sdist^2`` is the squared distance outside and minus the squared penetration depth inside
-    (never to the bottom face of a ``grounded`` box: the car's barrier, `target_rows`).
+    (never to the bottom face of a ``grounded`` box: the car's barrier, `barrier_rows.target_row`).
     """
     c, s = math.cos(yaw), math.sin(yaw)
-    d = np.asarray(p, float)[None, :] - np.atleast_2d(centers)
+    d = np.asarray(p, float)[None, :] - np.atleast_2d(np.asarray(centers, float))
     local = np.stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1], d[:, 2]], axis=1)
-    d2, _ = _box_distance_grad(local, np.atleast_2d(half), grounded)
-    return d2 - clearance**2
+    half = np.ascontiguousarray(np.atleast_2d(np.asarray(half, float)))
+    return box_sdists(local, half, grounded) - clearance**2
 
 
 def h_occlusion(p: np.ndarray, p_o: np.ndarray, n: np.ndarray, theta_star: float) -> np.ndarray:
@@ -309,137 +279,6 @@ def h_occlusion(p: np.ndarray, p_o: np.ndarray, n: np.ndarray, theta_star: float
     d = np.atleast_2d(p_o) - np.asarray(p, float)
     x = (d @ n) / (np.linalg.norm(d, axis=1) * np.linalg.norm(n))
     return np.arccos(np.clip(x, -1.0, 1.0)) - theta_star
-
-
-# --------------------------------------------------------------------------- row builders
-# Each family returns (A, h, drift, index): rows ``A V <= gamma h + drift - margin`` with the
-# family's gamma and margin fixed by `RowBuilder` (see each docstring). drift None means 0.
-
-
-def collision_rows(
-    p: np.ndarray, neighbours: np.ndarray, cbf: CBFConfig, radius: np.ndarray | None = None
-):
-    """Rows (25) for j in N_si = {||p - p_j|| <= D_s}: ``-2 (p - p_j)^T V <= gamma_s h / 2``.
-
-    The halved rate is the distributed split (23)-(24): UAV j enforces the mirrored half. h is
-    convex, so forward Euler keeps ``h(k+1) >= (1 - gamma_s dt) h(k)`` without a margin.
-
-    A neighbour known only within ``radius`` rho of ``neighbours`` (a lost message, not in the
-    paper) gets the row's worst case over that ball: h from the least possible distance,
-    ``(||d|| - rho)^2 - R_s^2``, and the drift ``-2 rho alpha_v`` for the unknown part of
-    ``-2 (p - p_j) . V`` (``||V|| <= alpha_v``). Each UAV's half still bounds its true share,
-    so the two halves sum to (22) whatever either knows.
-    """
-    d = p - neighbours
-    d2 = np.einsum("ij,ij->i", d, d)
-    if radius is None or not radius.any():
-        idx = (d2 <= cbf.d_s**2).nonzero()[0]
-        if len(idx) < len(d2):
-            d, d2 = d.take(idx, 0), d2.take(idx)
-        return -2.0 * d, d2 - cbf.r_s**2, None, idx
-    dist = np.sqrt(d2)
-    idx = (dist - radius <= cbf.d_s).nonzero()[0]
-    d, d2, dist, rho = d[idx], d2[idx], dist[idx], radius[idx]
-    near = np.maximum(dist - rho, 0.0)
-    h = np.where(rho > 0.0, near * near, d2) - cbf.r_s**2
-    return -2.0 * d, h, -2.0 * cbf.alpha_v * rho, idx
-
-
-def connectivity_rows(
-    p: np.ndarray, neighbours: np.ndarray, cbf: CBFConfig, radius: np.ndarray | None = None
-):
-    """Rows (34), j in N_ci = {||p - p_j|| <= R_c}: ``2 (p - p_j)^T V <= gamma_c h / 2 - margin``.
-
-    h = R_c^2 - ||p - p_j||^2 is concave, so one forward-Euler step of length dt loses up to
-    ``dt^2 ||V_i - V_j||^2 <= 4 dt^2 alpha_v^2`` against its linearisation. Each of the two UAVs
-    subtracts ``margin = 2 dt alpha_v^2`` (h-dot units) from its half, so the pair gains
-    ``2 margin dt = 4 dt^2 alpha_v^2`` per step, restoring ``h(k+1) >= (1 - gamma_c dt) h(k)``.
-
-    A neighbour known only within ``radius`` rho (a lost message) gets the worst case over that
-    ball, as in `collision_rows`: ``h = R_c^2 - (||d|| + rho)^2`` and drift ``-2 rho alpha_v``;
-    it keeps its row while it may still be within R_c.
-    """
-    d = p - neighbours
-    d2 = np.einsum("ij,ij->i", d, d)
-    if radius is None or not radius.any():
-        idx = (d2 <= cbf.r_c**2).nonzero()[0]
-        if len(idx) < len(d2):
-            d, d2 = d.take(idx, 0), d2.take(idx)
-        return 2.0 * d, cbf.r_c**2 - d2, None, idx
-    dist = np.sqrt(d2)
-    idx = (dist - radius <= cbf.r_c).nonzero()[0]
-    d, d2, dist, rho = d[idx], d2[idx], dist[idx], radius[idx]
-    far = dist + rho
-    h = cbf.r_c**2 - np.where(rho > 0.0, far * far, d2)
-    return 2.0 * d, h, -2.0 * cbf.alpha_v * rho, idx
-
-
-def point_obstacle_rows(p: np.ndarray, centers: np.ndarray, cbf: CBFConfig):
-    """Paper's point model: ``h = ||p - p_o||^2 - R_s^2``, ``-2 (p - p_o)^T V <= gamma_obs h``.
-
-    Obstacles are static, so the UAV takes the whole rate (no 1/2 split as in (23)).
-    """
-    d = p - centers
-    return -2.0 * d, np.einsum("ij,ij->i", d, d) - cbf.r_s**2, None, np.arange(len(d))
-
-
-def box_obstacle_rows(p: np.ndarray, centers: np.ndarray, half: np.ndarray, cbf: CBFConfig):
-    """Box model: ``h = sdist(p, box)^2 - c^2``, ``-grad h^T V <= gamma_obs h`` (static boxes).
-
-    Outside the box grad h = 2 (p - closest point). h is convex outside, so forward Euler never
-    decreases it faster than its linearisation (no discrete-time margin needed).
-    """
-    d2, grad = _box_distance_grad(p - centers, half)
-    return -grad, d2 - cbf.obstacle_clearance**2, None, np.arange(len(d2))
-
-
-def target_rows(
-    p: np.ndarray,
-    q: np.ndarray,
-    vq: np.ndarray,
-    half: np.ndarray,
-    heading: float,
-    cbf: CBFConfig,
-    growth: float = 0.0,
-):
-    """The target car as an oriented box moving at V_q: ``-grad h^T V <= gamma_obs h + drift``.
-
-    h-dot = grad h . (V - V_q) for a translating box (its heading rate is neglected), so
-    ``drift = -grad h . V_q``; a box that also grows by ``growth`` m/s on every side (an
-    undetected car, `onboard.car_box`) closes in at that speed: ``drift -= ||grad h|| growth``.
-    From inside the box the way out is its nearest side or its top, never its bottom: the car
-    stands on the ground. Scalar code: this is one row, evaluated at 80 Hz.
-    """
-    c, s = math.cos(heading), math.sin(heading)
-    dx, dy, dz = (p - q).tolist()
-    hx, hy, hz = half.tolist()
-    local = (c * dx + s * dy, -s * dx + c * dy, dz)
-    ex = [abs(a) - b for a, b in zip(local, (hx, hy, hz), strict=True)]
-    if max(ex) < 0.0:  # inside: nearest face, the bottom excluded (the car is on the ground)
-        inside = [ex[0], ex[1], dz - hz]
-        ax = inside.index(max(inside))
-        depth = -inside[ax]
-        g = [0.0, 0.0, 0.0]
-        g[ax] = 2.0 * depth if ax == 2 else math.copysign(2.0 * depth, local[ax])
-        d2 = -depth * depth
-    else:
-        g = [math.copysign(2.0 * max(e, 0.0), a) for e, a in zip(ex, local, strict=True)]
-        d2 = sum(max(e, 0.0) ** 2 for e in ex)
-    gx, gy, gz = c * g[0] - s * g[1], s * g[0] + c * g[1], g[2]
-    vx, vy, vz = vq.tolist()
-    h = d2 - cbf.obstacle_clearance**2
-    drift = -(gx * vx + gy * vy + gz * vz)
-    if growth > 0.0:
-        drift -= math.sqrt(gx * gx + gy * gy + gz * gz) * growth
-    return np.array(((-gx, -gy, -gz),)), np.array((h,)), np.array((drift,)), np.zeros(1, int)
-
-
-def floor_rows(p: np.ndarray, cbf: CBFConfig):
-    """Altitude floor ``h = z - z_min``: ``-V_z <= gamma_z h`` (linear: exact in discrete time)."""
-    return _FLOOR_A, np.array((p[2] - cbf.z_min,)), None, np.zeros(1, int)
-
-
-_FLOOR_A = np.array(((0.0, 0.0, -1.0),))
 
 
 class RowBuilder:
@@ -520,49 +359,40 @@ class RowBuilder:
     def __call__(self, ctx: SafetyContext) -> CBFRows:
         """All member rows of the QP (47) for this context."""
         cbf = self.cbf
-        p = ctx.position
         nb, oc = ctx.neighbours, ctx.obstacle_centers
-        has_t = ctx.target_position is not None
-        fams = []
         rho = ctx.neighbour_radius
-        if len(nb):
-            fams.append(collision_rows(p, nb, cbf, rho))
-        else:
-            fams.append(_NONE)
-        if not len(oc):
-            fams.append(_NONE)
-        elif self.obstacle_model == "box":
-            fams.append(box_obstacle_rows(p, oc, ctx.obstacle_half_extents, cbf))
-        else:
-            fams.append(point_obstacle_rows(p, oc, cbf))
-        if has_t and self.target_as_obstacle:
-            fams.append(
-                target_rows(
-                    p,
-                    ctx.target_position,
-                    ctx.target_velocity,
-                    ctx.target_half_extents,
-                    ctx.target_heading,
-                    cbf,
-                    ctx.target_growth,
-                )
-            )
-        else:
-            fams.append(_NONE)
-        fams.append(floor_rows(p, cbf))
-        fams.append(connectivity_rows(p, nb, cbf, rho) if len(nb) else _NONE)
-        fams.append(self._occlusion_family(ctx) if has_t and self.occlusion and len(oc) else _NONE)
-        sizes = tuple(len(f[3]) for f in fams)
+        car = ctx.target_position is not None
+        A, h, drift, index, counts = first_order_rows(
+            ctx.position,
+            nb,
+            np.zeros(len(nb)) if rho is None else rho,
+            oc,
+            ctx.obstacle_half_extents,
+            self.obstacle_model == "box",
+            car and self.target_as_obstacle,
+            ctx.target_position if car else _ZEROS3,
+            ctx.target_velocity if car else _ZEROS3,
+            ctx.target_half_extents if car else _ZEROS3,
+            ctx.target_heading if car else 0.0,
+            ctx.target_growth,
+            cbf.d_s,
+            cbf.r_s,
+            cbf.r_c,
+            cbf.alpha_v,
+            cbf.obstacle_clearance,
+            cbf.z_min,
+        )
+        n_occlusion = 0
+        if car and self.occlusion and len(oc):
+            A_o, h_o, drift_o, index_o = self._occlusion_family(ctx)
+            n_occlusion = len(h_o)
+            if n_occlusion:
+                A = np.concatenate((A, A_o))
+                h = np.concatenate((h, h_o))
+                drift = np.concatenate((drift, drift_o))
+                index = np.concatenate((index, index_o))
+        sizes = (*counts.tolist(), n_occlusion)
         gamma, margin, kind = self._layout(sizes)
-        A = np.concatenate([f[0] for f in fams])
-        h = np.concatenate([f[1] for f in fams])
-        index = np.concatenate([f[3] for f in fams])
-        drift = np.zeros(len(h))
-        start = 0
-        for fam, size in zip(fams, sizes, strict=True):
-            if fam[2] is not None:  # the target's motion, lost messages' reachable sets
-                drift[start : start + size] = fam[2]
-            start += size
         b = gamma * h + drift - margin
         if self.lag_tau > 0.0:
             b = self._second_order(ctx, A, h, b, margin, kind, index, sizes)
@@ -665,7 +495,7 @@ class RowBuilder:
         pair[uav] = pair[con] = True
         standoff = cbf.obstacle_clearance if self.obstacle_model == "box" else cbf.r_s
         gap[obs] = np.sqrt(np.maximum(h[obs] + standoff**2, 0.0)) - standoff
-        clearance = cbf.obstacle_clearance  # the car's box barrier (`target_rows`)
+        clearance = cbf.obstacle_clearance  # the car's box barrier (`barrier_rows.target_row`)
         gap[tgt] = np.sqrt(np.maximum(h[tgt] + clearance**2, 0.0)) - clearance
         gap[flr] = h[flr]
         dist = 0.5 * norm
@@ -759,7 +589,7 @@ def _neighbour_velocities(ctx: SafetyContext) -> np.ndarray:
     return nb_v
 
 
-_NONE = (_EMPTY3, np.zeros(0), None, np.zeros(0, int))
+_ZEROS3 = np.zeros(3)
 
 
 def build_rows(ctx: SafetyContext, cbf: CBFConfig, **kwargs) -> CBFRows:

@@ -1,0 +1,188 @@
+"""The first-order rows of the collision, obstacle, car, floor and connectivity families.
+
+Each row is ``A V <= gamma h + drift - margin`` (`cbf` module docstring); this module gives A, h
+and drift, `cbf.RowBuilder` adds the family's gamma and margin. The rows of one UAV are a few
+dozen scalars, rebuilt for every UAV at 80 Hz, so they are computed in one numba-compiled pass
+(`cache=True`: compiled once per machine, then loaded) instead of dozens of tiny numpy calls.
+tests/test_safety_cbf.py checks them against finite differences of their barrier functions.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+
+N_FAMILIES = 5
+"""uav, obstacle, target, floor, connect: the order of `first_order_rows`' families."""
+
+
+@numba.njit(cache=True)
+def box_sdist(lx, ly, lz, hx, hy, hz, grounded):  # pragma: no cover (compiled)
+    """Signed squared distance from a point (box coordinates) to a box of half sizes h, and its
+    gradient: (d2, gx, gy, gz).
+
+    Outside: ``dist^2`` with gradient ``2 (p - closest point)``. Inside (penetration depth e to
+    the nearest face with outward normal n): ``-e^2`` with gradient ``2 e n``. The function is
+    C^1 across the surface (value and gradient both vanish there). ``grounded``: the box stands
+    on the ground, so its bottom face is never the way out (the car, `target_row`).
+    """
+    ex, ey, ez = abs(lx) - hx, abs(ly) - hy, abs(lz) - hz
+    if max(ex, ey, ez) < 0.0:
+        if grounded:
+            ez = lz - hz
+        depth = -max(ex, ey, ez)
+        gx = gy = gz = 0.0
+        if ex >= ey and ex >= ez:  # the nearest face, first axis on ties (numpy's argmax)
+            gx = math.copysign(2.0 * depth, lx)
+        elif ey >= ez:
+            gy = math.copysign(2.0 * depth, ly)
+        else:
+            gz = 2.0 * depth if grounded else math.copysign(2.0 * depth, lz)
+        return -depth * depth, gx, gy, gz
+    ox, oy, oz = max(ex, 0.0), max(ey, 0.0), max(ez, 0.0)
+    d2 = ox * ox + oy * oy + oz * oz
+    return d2, math.copysign(2.0 * ox, lx), math.copysign(2.0 * oy, ly), math.copysign(2.0 * oz, lz)
+
+
+@numba.njit(cache=True)
+def box_sdists(local, half, grounded):  # pragma: no cover (compiled)
+    """`box_sdist` of points (m, 3) in box coordinates against half sizes (m, 3) or (1, 3)."""
+    m = local.shape[0]
+    out = np.empty(m)
+    for j in range(m):
+        hj = half[j if half.shape[0] > 1 else 0]
+        out[j] = box_sdist(local[j, 0], local[j, 1], local[j, 2], hj[0], hj[1], hj[2], grounded)[0]
+    return out
+
+
+@numba.njit(cache=True)
+def target_row(p, q, vq, half, heading, clearance, growth):  # pragma: no cover (compiled)
+    """The car as a box at q with yaw ``heading``, moving at V_q: (-grad h, h, drift).
+
+    h = sdist(p, box)^2 - clearance^2 (`box_sdist`, grounded: from inside, the way out is a side
+    or the top). h-dot = grad h . (V - V_q) for a translating box (its heading rate is
+    neglected), so ``drift = -grad h . V_q``; a box that also grows by ``growth`` m/s on every
+    side (an undetected car, `onboard.car_box`) closes in at that speed: ``drift -= ||grad h||
+    growth``.
+    """
+    c, s = math.cos(heading), math.sin(heading)
+    dx, dy, dz = p[0] - q[0], p[1] - q[1], p[2] - q[2]
+    d2, gx_l, gy_l, gz = box_sdist(
+        c * dx + s * dy, -s * dx + c * dy, dz, half[0], half[1], half[2], True
+    )
+    gx, gy = c * gx_l - s * gy_l, s * gx_l + c * gy_l
+    drift = -(gx * vq[0] + gy * vq[1] + gz * vq[2])
+    if growth > 0.0:
+        drift -= math.sqrt(gx * gx + gy * gy + gz * gz) * growth
+    return -gx, -gy, -gz, d2 - clearance * clearance, drift
+
+
+@numba.njit(cache=True)
+def first_order_rows(
+    p,
+    nb,
+    rho,
+    centers,
+    half,
+    box_model,
+    car,
+    q,
+    vq,
+    car_half,
+    heading,
+    growth,
+    d_s,
+    r_s,
+    r_c,
+    alpha_v,
+    clearance,
+    z_min,
+):  # pragma: no cover (compiled)
+    """Rows of the families uav, obstacle, target, floor, connect (in that order): (A, h, drift,
+    index, sizes).
+
+    * uav (20)-(25), j in N_si = {||p - p_j|| <= D_s}: ``A = -2 (p - p_j)``, h = ||d||^2 - R_s^2
+      (halved rate, the distributed split (23)-(24): UAV j enforces the mirrored half; h is
+      convex, so forward Euler needs no margin).
+    * obstacle: boxes (``box_model``; not in the paper), h = sdist(p, box)^2 - clearance^2,
+      A = -grad h; or the paper's points (IV-A), h = ||p - p_o||^2 - R_s^2. Static: no drift.
+    * target (if ``car``): `target_row`.
+    * floor (not in the paper): h = z - z_min, A = (0, 0, -1) (linear: exact in discrete time).
+    * connect (29)-(34), j in N_ci = {||p - p_j|| <= R_c}: ``A = 2 (p - p_j)``, h = R_c^2 -
+      ||d||^2 (concave: `cbf.RowBuilder` subtracts the discrete-time margin).
+
+    A neighbour known only within ``rho_j`` of ``nb_j`` (a lost message; `onboard.NeighbourTable`)
+    gets its rows' worst case over that ball: h from the least (uav) or greatest (connect)
+    possible distance, ``(||d|| -+ rho)^2``, and the drift ``-2 rho alpha_v`` for the unknown
+    part of ``-+2 (p - p_j) . V`` (``||V|| <= alpha_v``); it keeps its rows while it may be in
+    the set. Each UAV's half still bounds its true share, so the halves sum to (22)/(31).
+    """
+    k, m = nb.shape[0], centers.shape[0]
+    size = 2 * k + m + 2
+    A = np.zeros((size, 3))
+    h = np.empty(size)
+    drift = np.zeros(size)
+    index = np.zeros(size, np.int64)
+    sizes = np.zeros(N_FAMILIES, np.int64)
+    uncertain = False
+    for j in range(k):
+        uncertain |= rho[j] != 0.0
+    d = np.empty((k, 3))
+    d2 = np.empty(k)
+    for j in range(k):
+        for i in range(3):
+            d[j, i] = p[i] - nb[j, i]
+        d2[j] = d[j, 0] * d[j, 0] + d[j, 1] * d[j, 1] + d[j, 2] * d[j, 2]
+    r = 0
+    for j in range(k):  # uav
+        dist = math.sqrt(d2[j])
+        if (dist - rho[j] <= d_s) if uncertain else (d2[j] <= d_s * d_s):
+            A[r] = -2.0 * d[j]
+            if rho[j] > 0.0:
+                near = max(dist - rho[j], 0.0)
+                h[r] = near * near - r_s * r_s
+            else:
+                h[r] = d2[j] - r_s * r_s
+            drift[r] = -2.0 * alpha_v * rho[j] if uncertain else 0.0
+            index[r] = j
+            r += 1
+    sizes[0] = r
+    for j in range(m):  # obstacle
+        lx, ly, lz = p[0] - centers[j, 0], p[1] - centers[j, 1], p[2] - centers[j, 2]
+        if box_model:
+            dd, gx, gy, gz = box_sdist(lx, ly, lz, half[j, 0], half[j, 1], half[j, 2], False)
+            A[r, 0], A[r, 1], A[r, 2] = -gx, -gy, -gz
+            h[r] = dd - clearance * clearance
+        else:
+            A[r, 0], A[r, 1], A[r, 2] = -2.0 * lx, -2.0 * ly, -2.0 * lz
+            h[r] = lx * lx + ly * ly + lz * lz - r_s * r_s
+        index[r] = j
+        r += 1
+    sizes[1] = m
+    if car:
+        A[r, 0], A[r, 1], A[r, 2], h[r], drift[r] = target_row(
+            p, q, vq, car_half, heading, clearance, growth
+        )
+        r += 1
+        sizes[2] = 1
+    A[r, 2] = -1.0  # floor
+    h[r] = p[2] - z_min
+    r += 1
+    sizes[3] = 1
+    start = r
+    for j in range(k):  # connect
+        dist = math.sqrt(d2[j])
+        if (dist - rho[j] <= r_c) if uncertain else (d2[j] <= r_c * r_c):
+            A[r] = 2.0 * d[j]
+            if rho[j] > 0.0:
+                far = dist + rho[j]
+                h[r] = r_c * r_c - far * far
+            else:
+                h[r] = r_c * r_c - d2[j]
+            drift[r] = -2.0 * alpha_v * rho[j] if uncertain else 0.0
+            index[r] = j
+            r += 1
+    sizes[4] = r - start
+    return A[:r], h[:r], drift[:r], index[:r], sizes
