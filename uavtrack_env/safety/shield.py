@@ -67,6 +67,14 @@ from uavtrack_env.safety.cbf import (
     SafetyContext,
 )
 from uavtrack_env.safety.config import CBFConfig
+from uavtrack_env.safety.qp_arrays import (
+    INF,
+    camera_rows,
+    daqp_bounds,
+    meets,
+    qp_arrays,
+    row_violations,
+)
 from uavtrack_env.validation import Fields as _Fields
 
 SOLVERS = ("daqp", "proxqp", "daqp-direct")
@@ -74,7 +82,6 @@ SOLVERS = ("daqp", "proxqp", "daqp-direct")
 calls `daqp.solve` without qpsolvers' problem conversions and checks: ~3 us instead of ~9 us per
 solve here (benchmarks/shield_speed.py). All three are tested to give the same answers."""
 
-_INF = 1e30
 _PRIMAL_TOL = 1e-10
 """Solver feasibility tolerance (m/s on unit rows). daqp's default 1e-6 lets h creep ~1e-6
 below 0 over many steps at an active barrier; 1e-10 keeps the closed loop at ~1e-10."""
@@ -361,17 +368,7 @@ class SafetyFilter:
         """The rows of the QP in camera coordinates (A V^g = A R v_c), normalised to unit normals:
         An, bn, their families (`CBFRows.kind`) and their indices in ``rows``. Zero rows that
         hold are dropped, and with `ShieldOptions.prune` those the speed ball implies."""
-        Ac, norms = _in_camera_frame(rows.A, yaw)
-        zero = norms < 1e-12
-        scale = np.where(zero, 1.0, norms)
-        bn = rows.b / scale
-        keep = ~zero | (bn < 0.0)
-        if self.options.prune:
-            keep &= bn < self.alpha_v * (1.0 + 1e-9)
-        kept = np.flatnonzero(keep)
-        An = Ac[kept] / scale[kept, None]
-        bn = bn[kept]
-        return An, bn, rows.kind[kept], kept
+        return camera_rows(rows.A, rows.b, rows.kind, yaw, self.alpha_v, self.options.prune)
 
     def _safe_velocity(
         self,
@@ -447,18 +444,10 @@ class SafetyFilter:
 
     def _solve(self, v_hat, An, bn, weights, lb3, ub3) -> tuple[np.ndarray | None, int]:
         """min 1/2||v - v_hat||^2 + sum w_j s_j  s.t.  An v - s <= bn, box, s >= 0, with cuts."""
-        slack = np.flatnonzero(weights > 0.0)
-        ns = len(slack)
-        nv = 3 + ns
-        H = np.eye(nv)
-        H[3:, 3:] *= self.options.slack_regularization
-        f = np.concatenate([-v_hat, weights[slack]])
-        G = np.zeros((len(bn), nv))
-        G[:, :3] = An
-        G[slack, 3 + np.arange(ns)] = -1.0
-        lb = np.concatenate([lb3, np.zeros(ns)])
-        ub = np.concatenate([ub3, np.full(ns, _INF)])
-        h = bn
+        H, f, G, h, lb, ub = qp_arrays(
+            v_hat, An, bn, weights, lb3, ub3, self.options.slack_regularization
+        )
+        nv = len(f)
         calls = 0
         v, speed = None, 0.0
         for it in range(self.options.norm_cuts + 1):
@@ -486,12 +475,8 @@ class SafetyFilter:
         """One QP solve; None on infeasibility, solver error or an inaccurate answer."""
         try:
             if self.solver == "daqp-direct":
-                nv = len(f)
-                bu = np.concatenate([ub, h])
-                bl = np.concatenate([lb, np.full(len(h), -_INF)])
-                x, _, flag, _ = daqp.solve(
-                    H, f, G, bu, bl, np.zeros(nv + len(h), dtype=np.int32), primal_tol=_PRIMAL_TOL
-                )
+                bu, bl, sense = daqp_bounds(lb, ub, h)
+                x, _, flag, _ = daqp.solve(H, f, G, bu, bl, sense, primal_tol=_PRIMAL_TOL)
                 if flag < 1:
                     return None
             else:
@@ -499,7 +484,7 @@ class SafetyFilter:
                     kwargs = {"eps_abs": _PRIMAL_TOL, "eps_rel": 0.0}
                 else:
                     kwargs = {"primal_tol": _PRIMAL_TOL}
-                ub_q = np.where(ub >= _INF, np.inf, ub)
+                ub_q = np.where(ub >= INF, np.inf, ub)
                 x = qpsolvers.solve_qp(
                     H,
                     f,
@@ -515,28 +500,19 @@ class SafetyFilter:
         except Exception:  # a solver crash must not take the UAV down: the caller falls back
             return None
         x = np.asarray(x, dtype=float)
-        vt = self.options.verify_tol
-        if not np.isfinite(x).all():
-            return None
-        if len(h) and (G @ x - h > vt * (1.0 + np.abs(h))).any():
-            return None
-        if (x < lb - vt).any() or (x > ub + vt).any():
-            return None
-        return x
+        return x if meets(x, G, h, lb, ub, self.options.verify_tol) else None
 
     # ----------------------------------------------------------------- report
     def _report(self, status, u, u_safe, rows, ctx, t0, solver, calls, An, bn, soft, kept):
         """Report for a changed action; slack and violations are measured at the returned action."""
         v = u_safe[:3]
-        viol = An @ v - bn
-        active_tol = max(self.options.tol, 1e-7)
         ids = ctx.neighbour_ids
-        active_rows = [rows.name(kept[j], ids) for j in np.flatnonzero(np.abs(viol) <= active_tol)]
-        over = viol > active_tol
-        slack_rows = {rows.name(kept[j], ids): float(viol[j]) for j in np.flatnonzero(over & soft)}
-        slack_total = float(viol[over & soft].sum())
-        hard_violation = float(viol[over & ~soft].sum())
-        gave_up = [rows.name(kept[j], ids) for j in np.flatnonzero(over & ~soft)]
+        active, over_soft, over_hard, viol, slack_total, hard_violation = row_violations(
+            An, bn, v, soft, max(self.options.tol, 1e-7)
+        )
+        active_rows = [rows.name(kept[j], ids) for j in active.tolist()]
+        slack_rows = {rows.name(kept[j], ids): float(viol[j]) for j in over_soft.tolist()}
+        gave_up = [rows.name(kept[j], ids) for j in over_hard.tolist()]
         if v @ v >= self.alpha_v**2 * (1.0 - 1e-9):
             active_rows.append("speed")
         if np.abs(v).max() >= self.v_max * (1.0 - 1e-9):
@@ -547,12 +523,12 @@ class SafetyFilter:
             status=status,
             active=True,
             correction_norm=float(np.linalg.norm(u_safe - u)),
-            slack=slack_total,
+            slack=float(slack_total),
             active_rows=active_rows,
             solver=solver,
             solver_calls=calls,
             time_us=(time.perf_counter() - t0) * 1e6,
-            hard_violation=hard_violation,
+            hard_violation=float(hard_violation),
             gave_up=gave_up,
             slack_per_row=slack_rows,
             rows=rows,
