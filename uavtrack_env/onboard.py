@@ -221,9 +221,9 @@ class OnboardAgent:
             2.0 * fastest if margins.target_speed_max is None else margins.target_speed_max
         )
         self._recovery = round(margins.truncation_recovery / DT)
-        self._uncut = np.full(2, self._recovery)
+        self._uncut = [self._recovery] * 2
         """Detections since the last box cut by the image border in u and in v."""
-        self._cut_steps = np.zeros(2, int)
+        self._cut_steps = [0, 0]
         """Steps since each axis's spell of cut boxes began (0: none)."""
         self._ids: dict[str, int] = {}
         self.obstacle_centers = np.zeros((0, 3))
@@ -245,8 +245,8 @@ class OnboardAgent:
         self.obstacle_half_extents = np.asarray(layout.obstacle_half_extents, float).reshape(-1, 3)
         self._ids = {a: i for i, a in enumerate(agents)}
         self.tracker.reset()
-        self._uncut[:] = self._recovery
-        self._cut_steps[:] = 0
+        self._uncut = [self._recovery] * 2
+        self._cut_steps = [0, 0]
         self.neighbours.reset(agents, layout.uav_positions, self.name, self._r_c)
         self.info, self.belief, self._context, self._rows = None, None, None, None
 
@@ -258,12 +258,15 @@ class OnboardAgent:
     def _take(self, info: dict) -> None:
         """The messages, the cut-box spells and the safety context of ``info`` (the tracker has
         taken it)."""
-        m = info["measurement"]
+        m, full = info["measurement"], self._recovery
         if m["detected"]:
-            cut = np.array((m["truncated_u"], m["truncated_v"]))
-            self._uncut = np.where(cut, 0, np.minimum(self._uncut + 1, self._recovery))
-        spell = self._uncut < self._recovery
-        self._cut_steps = np.where(spell, self._cut_steps + 1, 0)
+            cut = (m["truncated_u"], m["truncated_v"])
+            self._uncut = [
+                0 if c else min(n + 1, full) for c, n in zip(cut, self._uncut, strict=True)
+            ]
+        self._cut_steps = [
+            s + 1 if n < full else 0 for s, n in zip(self._cut_steps, self._uncut, strict=True)
+        ]
         self.neighbours.update(info["neighbours"])
         self.belief = self.neighbours.belief()
         self.info, self._rows = info, None
@@ -296,7 +299,11 @@ class OnboardAgent:
         }
         if est is not None:
             margins = self.config.margins
-            cut_time = self._cut_steps * DT if margins.truncated_box_pad else np.zeros(2)
+            cut_time = (
+                (self._cut_steps[0] * DT, self._cut_steps[1] * DT)
+                if margins.truncated_box_pad
+                else (0.0, 0.0)
+            )
             half, growth = car_box(est, margins, self._car_speed, cut_time)
             target = {
                 "target_position": est.target_position,
@@ -351,20 +358,24 @@ def car_box(
     extent: the box, centred at the estimate, reaches from the ground (or below) to the car's
     height plus ``target_margin``, whatever the estimated height.
     """
-    a, b, c = (float(x) for x in CAR_HALF_EXTENTS)
+    a, b, c = CAR_HALF_EXTENTS
     diag = math.hypot(a, b)
-    sigma_p = math.sqrt(max(float(np.max(np.diag(est.covariance)[4:7])), 0.0))
+    P = est.covariance
+    sigma_p = math.sqrt(max(P[4, 4], P[5, 5], P[6, 6], 0.0))
     pad = min(margins.target_margin + margins.target_sigmas * sigma_p, margins.target_margin_max)
     stale = est.steps_since_detection * DT - margins.target_stale_after
     growing = stale > 0.0
     if growing:
         pad += car_speed * stale
-    half = np.array([diag, diag, c]) + pad
-    for axes, most, t in (((0, 1), diag, cut_time[0]), ((2,), c, cut_time[1])):
-        if t > 0.0:
-            half[list(axes)] += min(car_speed * t, most)
-            growing |= car_speed * t < most
+    hxy, hz = diag + pad, c + pad
+    t_u, t_v = cut_time
+    if t_u > 0.0:
+        hxy += min(car_speed * t_u, diag)
+        growing |= car_speed * t_u < diag
+    if t_v > 0.0:
+        hz += min(car_speed * t_v, c)
+        growing |= car_speed * t_v < c
     if margins.car_on_ground:  # the box spans [<= 0, the car's height + target_margin]
         top, z = 2.0 * c + margins.target_margin, float(est.target_position[2])
-        half[2] = max(top - z, z)
-    return half, car_speed if growing else 0.0
+        hz = max(top - z, z)
+    return np.array((hxy, hxy, hz)), car_speed if growing else 0.0

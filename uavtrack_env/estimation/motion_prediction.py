@@ -3,17 +3,20 @@
 The paper fits a high-order polynomial to the target's recent position and velocity data with a
 QP (cf. (27) of its ref. [6]) and feeds the fitted velocity and acceleration (Gamma-dot,
 Gamma-ddot) into the UKF while the target is not detected. The QP there is an unconstrained
-weighted least-squares problem, so it is solved here in closed form with ``numpy.linalg.lstsq``:
+weighted least-squares problem, so it is solved here in closed form (normal equations, compiled
+with numba: it runs every few steps for every UAV):
 
     min_c  sum_k ||P(t_k) c - p_k||^2 + w * sum_k ||P'(t_k) c - v_k||^2
 
-with one polynomial per axis in a normalised time tau = (t - t_last) / T_window (for conditioning).
+with one polynomial per axis in a normalised time tau = (t - t_last) / (t_last - t_first) in
+[-1, 0] (for conditioning).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 
 
@@ -25,6 +28,9 @@ class MotionFit:
     position: np.ndarray
     velocity: np.ndarray
     acceleration: np.ndarray
+
+
+_NO_SAMPLES = np.zeros((0, 3))
 
 
 def _check_series(name: str, values: np.ndarray, n: int) -> np.ndarray:
@@ -75,42 +81,58 @@ def fit_polynomial(
     te = float(t.max()) if t_eval is None else float(t_eval)
     if not np.isfinite(te):
         raise ValueError(f"t_eval must be finite, got {t_eval}")
-    return _fit(t, p, velocities, order, velocity_weight, te)
+    v = _NO_SAMPLES if velocities is None else velocities
+    _n, pos, vel, acc = _fit(t, p, v, -np.inf, int(order), float(velocity_weight), te, 0)
+    return MotionFit(te, pos, vel, acc)
 
 
-def _fit(
-    t: np.ndarray,
-    p: np.ndarray,
-    v: np.ndarray | None,
-    order: int,
-    velocity_weight: float,
-    te: float,
-) -> MotionFit:
-    """`fit_polynomial` on checked inputs (``v`` None: positions only)."""
-    n = t.size
-    t_last = float(t.max())
-    span = max(float(t_last - t.min()), 1e-9)
-    tau = (t - t_last) / span
-    powers = np.arange(order + 1)
-    basis = np.vander(tau, order + 1, increasing=True)  # tau^k, k = 0..order
-    rows = [basis]
-    rhs = [p]
-    if v is not None:
-        dbasis = np.zeros((n, order + 1))
-        dbasis[:, 1:] = basis[:, :-1] * (powers[1:] / span)
-        sw = np.sqrt(velocity_weight)
-        rows.append(sw * dbasis)
-        rhs.append(sw * v)
-    M, Y = np.vstack(rows), np.vstack(rhs)
-    # normal equations: tau in [-1, 0] keeps M^T M well conditioned for the low orders used
-    coef = np.linalg.solve(M.T @ M, M.T @ Y)  # (order+1, 3)
+@numba.njit(cache=True)
+def _fit(t, p, v, lo, order, velocity_weight, te, min_samples):  # pragma: no cover (compiled)
+    """The fit of the samples with ``t >= lo`` (``v`` empty: positions only), by the normal
+    equations (tau in [-1, 0] keeps them well conditioned for the low orders used): (samples,
+    position, velocity, acceleration at ``te``); not fitted (zeros) below ``min_samples``."""
+    nb = order + 1
+    t_last, t_first, count = -np.inf, np.inf, 0
+    for i in range(t.shape[0]):
+        if t[i] >= lo:
+            t_last, t_first, count = max(t_last, t[i]), min(t_first, t[i]), count + 1
+    N = np.zeros((nb, nb))
+    r = np.zeros((nb, 3))
+    if count == 0 or count < min_samples:
+        return count, np.zeros(3), np.zeros(3), np.zeros(3)
+    span = max(t_last - t_first, 1e-9)
+    basis = np.empty(nb)
+    dbasis = np.zeros(nb)
+    use_v = v.shape[0] > 0 and velocity_weight > 0.0
+    for i in range(t.shape[0]):
+        if t[i] < lo:
+            continue
+        tau = (t[i] - t_last) / span
+        basis[0] = 1.0
+        for k in range(1, nb):
+            basis[k] = basis[k - 1] * tau
+            dbasis[k] = k * basis[k - 1] / span
+        for a in range(nb):
+            for b in range(nb):
+                N[a, b] += basis[a] * basis[b]
+                if use_v:
+                    N[a, b] += velocity_weight * dbasis[a] * dbasis[b]
+            for j in range(3):
+                r[a, j] += basis[a] * p[i, j]
+                if use_v:
+                    r[a, j] += velocity_weight * dbasis[a] * v[i, j]
+    coef = np.linalg.solve(N, r)  # (order + 1, 3)
     x = (te - t_last) / span
-    b0 = x**powers
-    b1 = np.zeros(order + 1)
-    b1[1:] = powers[1:] * x ** (powers[1:] - 1) / span
-    b2 = np.zeros(order + 1)
-    b2[2:] = powers[2:] * (powers[2:] - 1) * x ** (powers[2:] - 2) / span**2
-    return MotionFit(te, b0 @ coef, b1 @ coef, b2 @ coef)
+    b0 = np.zeros(nb)
+    b1 = np.zeros(nb)
+    b2 = np.zeros(nb)
+    for k in range(nb):
+        b0[k] = x**k
+        if k >= 1:
+            b1[k] = k * x ** (k - 1) / span
+        if k >= 2:
+            b2[k] = k * (k - 1) * x ** (k - 2) / span**2
+    return count, b0 @ coef, b1 @ coef, b2 @ coef
 
 
 class MotionHistory:
@@ -166,10 +188,16 @@ class MotionHistory:
         if self._count == 0:
             return None
         t_new = float(self._t.max())
-        mask = self._t >= t_new - self.window
-        if int(mask.sum()) < self.min_samples:
-            return None
-        # the samples are finite and one control period apart: no checks needed
-        v = self._v[mask] if self.velocity_weight > 0 else None
         te = t_new if t_eval is None else float(t_eval)
-        return _fit(self._t[mask], self._p[mask], v, self.order, self.velocity_weight, te)
+        # the samples are finite and one control period apart: no checks needed
+        n, pos, vel, acc = _fit(
+            self._t,
+            self._p,
+            self._v,
+            t_new - self.window,
+            self.order,
+            self.velocity_weight,
+            te,
+            self.min_samples,
+        )
+        return None if n < self.min_samples else MotionFit(te, pos, vel, acc)

@@ -118,15 +118,13 @@ class SafetyContext:
         ``target_half_extents`` and ``target_heading`` are then required with a target. No
         checks: the onboard stack builds one per UAV per step from the env's own data, where
         checking costs about as much as the rows it feeds."""
+        unknown = values.keys() - _CONTEXT_DEFAULTS.keys()
+        if unknown:
+            raise TypeError(f"SafetyContext has no fields {sorted(unknown)}")
         ctx = object.__new__(cls)
-        for f in fields(cls):
-            if f.name in values:
-                value = values.pop(f.name)
-            else:
-                value = f.default if f.default_factory is MISSING else f.default_factory()
-            object.__setattr__(ctx, f.name, value)
-        if values:
-            raise TypeError(f"SafetyContext has no fields {sorted(values)}")
+        state = ctx.__dict__  # frozen dataclass: fields are set past __setattr__, as dataclasses do
+        state.update(_CONTEXT_DEFAULTS)
+        state.update(values)
         return ctx
 
     def __post_init__(self) -> None:
@@ -190,6 +188,14 @@ class SafetyContext:
                 f"neighbour_ids has {len(self.neighbour_ids)} entries for "
                 f"{len(self.neighbours)} neighbours"
             )
+
+
+_CONTEXT_DEFAULTS = {
+    f.name: f.default if f.default_factory is MISSING else f.default_factory()
+    for f in fields(SafetyContext)
+}
+"""`SafetyContext.trusted`'s values of the fields it is not given (shared arrays: read-only
+use only, as everywhere in the shield)."""
 
 
 class CBFRows(NamedTuple):
