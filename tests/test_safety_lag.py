@@ -50,11 +50,8 @@ def rows_of(ctx, kind):
     return rows, sel
 
 
-@pytest.mark.parametrize("seed", range(5))
-def test_pair_rows_sum_to_the_second_order_condition(seed):
-    """UAV-UAV (20) and connectivity (29): the two UAVs' halves add up to the HOCBF condition
-    of the pair (each UAV using only its own command; the split of (23))."""
-    rng = np.random.default_rng(600 + seed)
+def pair_case(rng: np.random.Generator):
+    """Two UAVs' positions, velocities, commands and the contexts each one sees."""
     p = [rng.uniform(-2, 2, 3) + [0, 0, 3], None]
     p[1] = p[0] + rng.normal(size=3) * 2.5
     v = [rng.uniform(-3, 3, 3) for _ in range(2)]
@@ -69,17 +66,69 @@ def test_pair_rows_sum_to_the_second_order_condition(seed):
         )
         for i in range(2)
     ]
+    return p, v, u, ctx
+
+
+def pair_barriers(p, v, u):
+    """(kind, gamma1, h(t)) of the pair's collision (20) and connectivity (29) barriers."""
     traj = [path(p[i], v[i], u[i]) for i in range(2)]
-    for kind, gamma1, h_of in (
+    return (
         (UAV, CBF.gamma_s, lambda t: np.sum((traj[0](t) - traj[1](t)) ** 2) - CBF.r_s**2),
         (CONNECT, CBF.gamma_c, lambda t: CBF.r_c**2 - np.sum((traj[0](t) - traj[1](t)) ** 2)),
-    ):
-        total = 0.0
-        for i in range(2):
-            rows, sel = rows_of(ctx[i], kind)
-            r = sel[0]
-            total += rows.b[r] + rows.margin[r] - rows.A[r] @ u[i]
-        assert total == pytest.approx(hocbf_rate(h_of, gamma1), rel=1e-5, abs=1e-5)
+    )
+
+
+def own_slack(ctx, kind, u) -> tuple[float, float]:
+    """b - A u of the pair row of ``kind`` (without the margin), and the row's h."""
+    rows, sel = rows_of(ctx, kind)
+    r = sel[0]
+    return rows.b[r] + rows.margin[r] - rows.A[r] @ u, rows.h[r]
+
+
+@pytest.mark.parametrize("seed", range(12))
+def test_pair_rows_split_the_second_order_condition(seed):
+    """UAV-UAV (20) and connectivity (29), each UAV using only its own command: the two rows
+    add up to the HOCBF condition of the pair (the split of (23)) while the pair needs no
+    braking; when it does (need < 0), each row alone is the whole condition with the
+    team-mate's command at its velocity (each UAV brakes for the pair)."""
+    rng = np.random.default_rng(600 + seed)
+    p, v, u, ctx = pair_case(rng)
+    for kind, gamma1, h_of in pair_barriers(p, v, u):
+        rate = hocbf_rate(h_of, gamma1)
+        # the pair's need: the condition with both commands at their velocities
+        need = hocbf_rate(pair_barriers(p, v, v)[0 if kind == UAV else 1][2], gamma1)
+        total = sum(own_slack(ctx[i], kind, u[i])[0] for i in range(2))
+        if need >= 0.0:
+            assert total == pytest.approx(rate, rel=1e-5, abs=1e-5)
+        else:  # each row asks for the whole braking: both rows met leave the pair -need > 0
+            assert rate == pytest.approx(total - need, rel=1e-5, abs=1e-5)
+            for i in range(2):
+                alone = [u[0], u[1]]
+                alone[1 - i] = v[1 - i]
+                expected = hocbf_rate(
+                    pair_barriers(p, v, alone)[0 if kind == UAV else 1][2], gamma1
+                )
+                assert own_slack(ctx[i], kind, u[i])[0] == pytest.approx(
+                    expected, rel=1e-5, abs=1e-5
+                )
+
+
+def test_one_uav_keeps_a_closing_pair_safe_when_its_team_mate_cannot_brake():
+    """Two UAVs closing fast at R_s + 1 m; one is pinned (its command stays at its velocity,
+    as when a fallback gives its pair row up). The other's row alone keeps the pair's
+    condition: the closest command meeting it, applied with the pinned one coasting, gives a
+    non-negative HOCBF rate."""
+    p = [np.array([0.0, 0.0, 3.0]), np.array([CBF.r_s + 1.0, 0.0, 3.0])]
+    v = [np.array([2.0, 0.0, 0.0]), np.zeros(3)]
+    ctx = SafetyContext(
+        position=p[0], yaw=0.0, neighbours=[p[1]], velocity=v[0], neighbour_velocities=[v[1]]
+    )
+    rows, sel = rows_of(ctx, UAV)
+    a, b = rows.A[sel[0]], rows.b[sel[0]] + rows.margin[sel[0]]
+    u0 = v[0] - (a @ v[0] - b) / (a @ a) * a  # the projection of coasting onto the row
+    need = hocbf_rate(pair_barriers(p, v, v)[0][2], CBF.gamma_s)
+    assert need < 0.0  # the pair must brake
+    assert hocbf_rate(pair_barriers(p, v, [u0, v[1]])[0][2], CBF.gamma_s) >= -1e-6
 
 
 @pytest.mark.parametrize("seed", range(5))

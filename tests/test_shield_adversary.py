@@ -161,3 +161,15 @@ def test_shielded_run_has_no_violation(cell, family):
     run = _run(cell, family, True)
     assert run["counts"]["collision"] == 0 and run["counts"]["disconnection"] == 0, run
     assert run["agent_steps"] == STEPS * CELLS[cell].n  # nobody was terminated
+
+
+@pytest.mark.slow
+def test_a_pinned_uav_does_not_let_its_team_mate_in():
+    """World 54 of the harness's grid (n = 6, lag, no drops): seeking the nearest obstacle pins
+    one UAV between a team-mate, an obstacle and the floor, and its fallback gives up the row
+    of a second team-mate closing in; that team-mate brakes for the pair on its own."""
+    world = sa.WorldSpec(54, 6, "lag", 0.0, 54)
+    opts = sa.HarnessOptions(steps=STEPS, progress=False)
+    run = sa.run_one(world, "seek-obstacle", True, opts, expert_config("tuned"))
+    assert run["statuses"].get("fallback", 0) > 0  # the pinned case does occur
+    assert run["counts"]["collision"] == 0 and run["least"]["uav"] >= 0.0, run

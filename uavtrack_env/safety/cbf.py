@@ -419,10 +419,17 @@ class RowBuilder:
         for a first-order velocity lag ``v-dot = (u - v) / tau`` (not in the paper).
 
         With the actual velocity v, psi = h-dot + gamma1 h and psi-dot + psi / tau >= 0 give,
-        for the row's own share s (1/2 for the pair rows (23), 1 otherwise) and A = -grad h,
+        for the row's own share s and A = -grad h,
         ``A u <= -grad h . v + s (tau dv' H dv + (tau gamma1 + 1) grad h . dv + gamma1 h)``,
         dv the velocity relative to the other body and H the Hessian of h. As tau -> 0 this is
         the first-order row; rows keep their A, only b changes. Occlusion rows stay first order.
+
+        The share s is 1 for rows of one UAV. A pair row splits the pair's condition (the split
+        of (23)): s = 1/2 while the bracket (the pair's need) is >= 0, so the halves sum to the
+        condition; once it is < 0 the pair must brake and s = 1: each UAV brakes for the pair on
+        its own, so the condition holds even if the team-mate cannot do its half (a UAV pinned
+        by other hard rows gives its pair row up in a fallback) as long as the team-mate does
+        not accelerate towards it.
         """
         cbf, tau = self.cbf, self.lag_tau
         v = ctx.velocity
@@ -457,10 +464,16 @@ class RowBuilder:
         gamma1[flr] = cbf.gamma_z  # H = 0
         sel = kind < OCCLUSION
         hdot = np.einsum("ij,ij->i", grad, dv)
-        second = -(grad @ v) + share * (tau * curv + (tau * gamma1 + 1.0) * hdot + gamma1 * h)
-        if ctx.neighbour_radius is not None:
-            for sl, g1 in ((uav, cbf.gamma_s), (con, cbf.gamma_c)):
-                second[sl] -= self._uncertain_pair(ctx, v, A[sl], dv[sl], index[sl], sl is uav, g1)
+        need = tau * curv + (tau * gamma1 + 1.0) * hdot + gamma1 * h
+        second = -(grad @ v)
+        for sl, g1 in ((uav, cbf.gamma_s), (con, cbf.gamma_c)):
+            if ctx.neighbour_radius is not None and sl.stop > sl.start:
+                own, drop = self._uncertain_pair(ctx, v, A[sl], dv[sl], index[sl], sl is uav, g1)
+                second[sl] -= own
+                need[sl] -= drop
+            # a pair that must brake (need < 0): each UAV brakes for the pair on its own
+            share[sl] = np.where(need[sl] < 0.0, 1.0, 0.5)
+        second += share * need
         if self.brake_decel > 0.0:
             second = np.minimum(second, self._braking(ctx, A, h, dv, gamma1, index, sizes))
         out = b.copy()
@@ -535,9 +548,12 @@ class RowBuilder:
         index: np.ndarray,
         collision: bool,
         gamma1: float,
-    ) -> np.ndarray:
-        """How much a second-order pair row's b drops for neighbours known only within a ball
-        (position radius rho, velocity radius sigma; their h is already the ball's worst case).
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """How much a second-order pair row drops for neighbours known only within a ball
+        (position radius rho, velocity radius sigma; their h is already the ball's worst case):
+        (the drop of the UAV's own terms ``-grad h . v`` and ``A u``, the drop of the pair's
+        condition ``tau dv' H dv + (tau gamma1 + 1) grad h . dv``, of which the UAV takes its
+        share).
 
         With d = d_hat + e, ||e|| <= rho and v_j = v_hat + f, ||f|| <= sigma, each term of the
         row is bounded over the balls: ``-grad h . v`` by ``2 rho ||v||``, the curvature
@@ -559,7 +575,7 @@ class RowBuilder:
         hdot_drop = 2.0 * (rho * dvn + dn * sigma + rho * sigma)
         tau = self.lag_tau
         own = 2.0 * rho * (float(np.linalg.norm(v)) + self.cbf.alpha_v)
-        return own + 0.5 * (tau * curv_drop + (tau * gamma1 + 1.0) * hdot_drop)
+        return own, tau * curv_drop + (tau * gamma1 + 1.0) * hdot_drop
 
     def _obstacle_curvature(self, v: np.ndarray, grad: np.ndarray, h: np.ndarray) -> np.ndarray:
         """v' H v of the obstacle rows (box or point barrier, not in the paper), grad = grad h."""
