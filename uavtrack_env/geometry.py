@@ -37,6 +37,10 @@ def cam_to_world(yaw) -> np.ndarray:
 
 def world_to_cam_vec(v_world: np.ndarray, yaw) -> np.ndarray:
     """Express global vectors (..., 3) in the camera frame of a UAV with this yaw."""
+    if np.ndim(yaw) == 0 and np.ndim(v_world) == 1:  # one vector: no broadcasting machinery
+        c, s = float(np.cos(float(yaw))), float(np.sin(float(yaw)))
+        x, y, z = (float(e) for e in v_world)
+        return np.array((s * x - c * y, -z, c * x + s * y))
     yaw = np.asarray(yaw, dtype=float)[..., None]
     c, s = np.cos(yaw), np.sin(yaw)
     x, y, z = v_world[..., 0:1], v_world[..., 1:2], v_world[..., 2:3]
@@ -45,6 +49,10 @@ def world_to_cam_vec(v_world: np.ndarray, yaw) -> np.ndarray:
 
 def cam_to_world_vec(v_cam: np.ndarray, yaw) -> np.ndarray:
     """Express camera-frame vectors (..., 3) in the global frame."""
+    if np.ndim(yaw) == 0 and np.ndim(v_cam) == 1:  # one vector: no broadcasting machinery
+        c, s = float(np.cos(float(yaw))), float(np.sin(float(yaw)))
+        X, Y, Z = (float(e) for e in v_cam)
+        return np.array((s * X + c * Z, -c * X + s * Z, -Y))
     yaw = np.asarray(yaw, dtype=float)[..., None]
     c, s = np.cos(yaw), np.sin(yaw)
     X, Y, Z = v_cam[..., 0:1], v_cam[..., 1:2], v_cam[..., 2:3]

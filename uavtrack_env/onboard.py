@@ -18,6 +18,7 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 
 from .config import DT, CameraConfig, EnvConfig
@@ -140,42 +141,87 @@ class NeighbourTable:
 
     def update(self, messages: dict[str, np.ndarray]) -> None:
         """Take this step's messages (team-mate -> position); the others age by one step."""
-        self._age += 1
-        for name, pos in messages.items():
-            k = self._index.get(name)
-            if k is None:
-                continue
-            pos = np.asarray(pos, float)
-            if self._known[k]:
-                gap = int(self._age[k])
-                self._vel[k] = (pos - self._pos[k]) / (gap * self.dt)
-                self._vel_err[k] = 0.5 * (self.accel_bound or 0.0) * (gap - 1) * self.dt
-            else:  # first heard: its velocity is unknown within the speed bound
-                self._vel[k] = 0.0
-                self._vel_err[k] = self.speed_bound
-            self._pos[k] = pos
-            self._age[k] = 0
-            self._known[k] = True
-        self._known &= self._age < self.timeout
+        index = self._index
+        ks = [index[name] for name in messages if name in index]
+        pos = (
+            np.array([messages[name] for name in messages if name in index], float)
+            if ks
+            else _NO_POSITIONS
+        )
+        _take_messages(
+            np.array(ks, np.int64), pos, self._pos, self._vel, self._vel_err, self._age,
+            self._known, self.dt, self.accel_bound or 0.0, self.speed_bound, self.timeout,
+        )  # fmt: skip
 
     def belief(self) -> NeighbourBelief:
         """The known team-mates now."""
         k = np.flatnonzero(self._known)
-        age = self._age[k]
-        t = age * self.dt
-        vel = self._vel[k]
-        radius = self.speed_bound * t
-        vel_radius = np.zeros(len(k))
-        pos = self._pos[k]
-        if self.accel_bound is not None and len(k):
-            err = self._vel_err[k]
-            speed = np.linalg.norm(vel, axis=1)
+        pos, vel, radius, vel_radius = _believe(
+            k, self._pos, self._vel, self._vel_err, self._age, self.dt, self.speed_bound,
+            -1.0 if self.accel_bound is None else self.accel_bound,
+        )  # fmt: skip
+        names = self._names
+        return NeighbourBelief(
+            tuple(names[i] for i in k.tolist()), pos, vel, radius, vel_radius, self._age[k]
+        )
+
+
+_NO_POSITIONS = np.zeros((0, 3))
+
+
+@numba.njit(cache=True)
+def _take_messages(
+    ks, pos, p, v, v_err, age, known, dt, accel, speed, timeout
+):  # pragma: no cover (compiled)
+    """`NeighbourTable.update` on its arrays, in place: messages ``pos[i]`` from team-mate
+    ``ks[i]``."""
+    for j in range(age.shape[0]):
+        age[j] += 1
+    for i in range(ks.shape[0]):
+        k = ks[i]
+        if known[k]:
+            gap = age[k]
+            for a in range(3):
+                v[k, a] = (pos[i, a] - p[k, a]) / (gap * dt)
+            v_err[k] = 0.5 * accel * (gap - 1) * dt
+        else:  # first heard: its velocity is unknown within the speed bound
+            for a in range(3):
+                v[k, a] = 0.0
+            v_err[k] = speed
+        for a in range(3):
+            p[k, a] = pos[i, a]
+        age[k] = 0
+        known[k] = True
+    for j in range(age.shape[0]):
+        known[j] = known[j] and age[j] < timeout
+
+
+@numba.njit(cache=True)
+def _believe(ks, p, v, v_err, age, dt, speed, accel):  # pragma: no cover (compiled)
+    """`NeighbourTable.belief`'s arrays for the known team-mates ``ks`` (``accel`` < 0: none):
+    positions, velocities, position and velocity radii."""
+    m = ks.shape[0]
+    pos = np.empty((m, 3))
+    vel = np.empty((m, 3))
+    radius = np.empty(m)
+    vel_radius = np.zeros(m)
+    for i in range(m):
+        k = ks[i]
+        t = age[k] * dt
+        for a in range(3):
+            vel[i, a] = v[k, a]
+            pos[i, a] = p[k, a]
+        radius[i] = speed * t
+        if accel >= 0.0:
+            err = v_err[k]
+            s = math.sqrt(v[k, 0] * v[k, 0] + v[k, 1] * v[k, 1] + v[k, 2] * v[k, 2])
             # forward Euler, p(k+1) = p(k) + v(k+1) dt: the drift is a sum, not an integral
-            propagated = 0.5 * self.accel_bound * t * (t + self.dt) + err * t
-            radius = np.minimum((self.speed_bound + speed) * t, propagated)
-            pos = pos + vel * t[:, None]
-            vel_radius = np.minimum(err + self.accel_bound * t, 2.0 * self.speed_bound)
-        return NeighbourBelief(tuple(self._names[i] for i in k), pos, vel, radius, vel_radius, age)
+            propagated = 0.5 * accel * t * (t + dt) + err * t
+            radius[i] = min((speed + s) * t, propagated)
+            for a in range(3):
+                pos[i, a] = p[k, a] + v[k, a] * t
+            vel_radius[i] = min(err + accel * t, 2.0 * speed)
+    return pos, vel, radius, vel_radius
 
 
 class OnboardAgent:
