@@ -321,7 +321,10 @@ class UAVTrackEnv(ParallelEnv):
     # ------------------------------------------------------------------- step
     def step(self, actions: dict[str, Any]):
         """simulate -> sense -> score -> observe; then the episode's end."""
-        u, clipped = self.validate_actions(actions)
+        return self._step_checked(*self.validate_actions(actions))
+
+    def _step_checked(self, u: np.ndarray, clipped: np.ndarray):
+        """`step` of actions `validate_actions` has checked and scaled (u, clipped)."""
         self._simulate(u, clipped)
         m = self._sense()
         score = self._score(m, u)
@@ -340,9 +343,15 @@ class UAVTrackEnv(ParallelEnv):
         agents; ValueError for a non-dict, wrong shapes or non-finite values.
         """
         self._check_can_act(actions)
+        return self._scaled(
+            {agent: self.check_action(agent, act) for agent, act in actions.items()}
+        )
+
+    def _scaled(self, actions: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+        """`validate_actions`' (u, clipped) of checked float64 (4,) actions of the live agents."""
         a = np.zeros((self.config.n_uavs, 4))
         for agent, act in actions.items():
-            a[self._index[agent]] = self.check_action(agent, act)
+            a[self._index[agent]] = act
         clipped = np.any(np.abs(a) > 1.0, axis=1)
         return np.clip(a, -1.0, 1.0) * self._scale, clipped
 

@@ -68,7 +68,8 @@ def update_trackers(trackers: Sequence[OnboardTracker], infos: Sequence[dict]) -
                 tracker.estimate = tracker.estimator.reset(meas, pos, yaw)
             continue
         # The UAV's own velocity (IMU/odometry) in the camera frame, as applied over the step.
-        u_meas = np.concatenate([world_to_cam_vec(own["velocity"], yaw), [-own["yaw_rate"]]])
+        vx, vy, vz = world_to_cam_vec(own["velocity"], yaw).tolist()
+        u_meas = np.array((vx, vy, vz, -float(own["yaw_rate"])))
         running.append(tracker)
         inputs.append((u_meas, pos, yaw, meas))
     estimates = step_team([t.estimator for t in running], inputs)
@@ -338,12 +339,13 @@ class OnboardAgent:
         """The CBF-QP's view: own pose and velocity, the team-mates as believed (and, for
         second-order rows, their velocities), the known obstacles, the car's estimate."""
         own, est = info["own"], self.tracker.estimate
-        target: dict = {  # no estimate: no target rows (SafetyContext's defaults)
-            "target_velocity": np.zeros(3),
-            "target_half_extents": np.array(CAR_HALF_EXTENTS, float),
-            "target_heading": 0.0,
-        }
-        if est is not None:
+        if est is None:  # no estimate: no target rows (SafetyContext's defaults)
+            target: dict = {
+                "target_velocity": np.zeros(3),
+                "target_half_extents": np.array(CAR_HALF_EXTENTS, float),
+                "target_heading": 0.0,
+            }
+        else:
             margins = self.config.margins
             cut_time = (
                 (self._cut_steps[0] * DT, self._cut_steps[1] * DT)

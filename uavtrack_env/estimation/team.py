@@ -12,6 +12,7 @@ height, the clock) is shared with the single-UAV path through
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Sequence
 
@@ -240,6 +241,14 @@ def sigma_points(x: np.ndarray, P: np.ndarray, lam: float) -> np.ndarray:
     return np.stack([_sigma_points(xk, Pk, float(lam)) for xk, Pk in zip(x, P, strict=True)])
 
 
+@functools.cache
+def _constants(cam, cfg) -> tuple[np.ndarray, np.ndarray, float]:
+    """The camera's (fx, fy, cu, cv), the x3 bounds and the x1/x2 limit, as the kernel takes
+    them (frozen configs: computed once)."""
+    cam_arr = np.array((cam.fx, cam.fy, cam.cu, cam.cv), float)
+    return cam_arr, np.asarray(cfg.x3_bounds, float), float(cfg.x12_limit)
+
+
 def step_team(estimators: Sequence[TargetEstimator], inputs: Sequence[StepInput]) -> list[Estimate]:
     """`TargetEstimator.step` for every estimator with its input, in one batched pass.
 
@@ -260,8 +269,8 @@ def step_team(estimators: Sequence[TargetEstimator], inputs: Sequence[StepInput]
     points = ukf.points_fn
     lam = points.alpha**2 * (points.n + points.kappa) - points.n
     K = len(estimators)
-    x = np.stack([est.ukf.x for est in estimators])
-    P = np.stack([est.ukf.P for est in estimators])
+    x = np.array([est.ukf.x for est in estimators], float)
+    P = np.array([est.ukf.P for est in estimators], float)
     seen = np.array([p.z is not None for p in plans])
     z = np.zeros((K, ukf.R.shape[0]))
     R = np.empty((K, *ukf.R.shape))
@@ -271,14 +280,13 @@ def step_team(estimators: Sequence[TargetEstimator], inputs: Sequence[StepInput]
             z[k] = plan.z
     repairs = _step_filters(
         x, P,
-        np.stack([p.u for p in plans]),
+        np.array([p.u for p in plans], float),
         np.array([p.yaw_before for p in plans]),
-        np.stack([p.accel for p in plans]),
+        np.array([p.accel for p in plans], float),
         seen,
         np.array([p.yaw for p in plans]),
         z, R, float(first.dt), float(lam), ukf.Wm, ukf.Wc, ukf.Q,
-        np.array((cam.fx, cam.fy, cam.cu, cam.cv), float),
-        np.asarray(cfg.x3_bounds, float), float(cfg.x12_limit), first._max_std,
+        *_constants(cam, cfg), first._max_std,
     )  # fmt: skip
 
     out = []

@@ -469,7 +469,7 @@ def _vec(name: str, value, n: int) -> np.ndarray:
         raise ValueError(f"{name} must be a numeric array of shape ({n},), got {value!r}") from exc
     if arr.shape != (n,):
         raise ValueError(f"{name} must have shape ({n},), got {arr.shape}")
-    if not np.all(np.isfinite(arr)):
+    if not all(map(math.isfinite, arr.tolist())):
         raise ValueError(f"{name} must be finite, got {arr}")
     return arr
 

@@ -113,7 +113,12 @@ class CBFShield(BaseParallelWrapper):
             certified[agent] = np.clip(u_safe / self._scale, -1.0, 1.0)
             # An unchanged action is passed through as given (bit-identical behaviour).
             safe[agent] = certified[agent] if report.active else action
-        obs, rewards, terms, truncs, infos = self.env.step(safe)
+        if self.env is self._raw:  # checked above: the env's step without checking again
+            checked = {a: np.asarray(act, dtype=np.float64) for a, act in safe.items()}
+            out = self._raw._step_checked(*self._raw._scaled(checked))
+        else:
+            out = self.env.step(safe)
+        obs, rewards, terms, truncs, infos = out
         self._observe(infos)
         self.last_reports = reports
         for agent, info in infos.items():
