@@ -191,11 +191,13 @@ class UAVTrackEnv(ParallelEnv):
     collision. Both parts of -c are in ``info`` (``reward_tracking``, ``reward_effort``).
 
     **Cost and violations** (``info[agent]``): ``violations = {collision, disconnection,
-    occlusion}`` and ``cost`` = how many are true. Collision: touching an obstacle, the car or the
-    ground (PyBullet contacts), or another UAV closer than R_s. Disconnection: the UAVs' graph with
-    edges <= R_c is not connected. Occlusion: obstacles (or UAVs) block more of the car's sample
-    points than the detector can tolerate. Every info value is finite: a nearest distance to
-    nothing (a UAV alone, a world without obstacles) is ``NOTHING_NEAR`` (1e4 m).
+    occlusion}`` (bools), ``costs`` the same keys as floats (1.0 when violated this step, else
+    0.0) and ``cost`` their sum (`SafeRLParallelEnv` returns it from ``step``). Collision:
+    touching an obstacle, the car or the ground (PyBullet contacts), or another UAV closer than
+    R_s. Disconnection: the UAVs' graph with edges <= R_c is not connected. Occlusion: obstacles
+    (or UAVs) block more of the car's sample points than the detector can tolerate. Every info
+    value is finite: a nearest distance to nothing (a UAV alone, a world without obstacles) is
+    ``NOTHING_NEAR`` (1e4 m).
 
     **Episode end**: terminated on collision (that agent or all, ``terminate_on_collision``);
     truncated after ``max_cycles`` steps (80 Hz).
@@ -577,8 +579,10 @@ class UAVTrackEnv(ParallelEnv):
             "disconnection": score.disconnected,
             "occlusion": bool(score.occluded[i]),
         }
+        costs = {k: float(v) for k, v in violations.items()}
         return {
-            "cost": float(sum(violations.values())),
+            "cost": costs["collision"] + costs["disconnection"] + costs["occlusion"],
+            "costs": costs,
             "violations": violations,
             "collision_with": {
                 "uav": bool(score.uav_too_close[i]),

@@ -1,5 +1,6 @@
-"""Wrappers: ``CBFShield`` (safety shield), ``SingleAgentView`` (a gymnasium.Env for one agent) and
-``SharedPolicyVecEnv`` (every agent of several env copies as one row of an SB3 VecEnv).
+"""Wrappers: ``CBFShield`` (safety shield), ``SafeRLParallelEnv`` (Safety-Gymnasium's step with
+costs), ``SingleAgentView`` (a gymnasium.Env for one agent) and ``SharedPolicyVecEnv`` (every
+agent of several env copies as one row of an SB3 VecEnv).
 
 ``SharedPolicyVecEnv`` needs the ``train`` extra (SB3, torch) and is imported on first use.
 """
@@ -8,10 +9,11 @@ from __future__ import annotations
 
 from typing import Any
 
+from .safe_rl import SafeRLParallelEnv
 from .shield import CBFShield
 from .single_agent import SingleAgentView
 
-__all__ = ["CBFShield", "SharedPolicyVecEnv", "SingleAgentView"]
+__all__ = ["CBFShield", "SafeRLParallelEnv", "SharedPolicyVecEnv", "SingleAgentView"]
 
 
 def __getattr__(name: str) -> Any:
