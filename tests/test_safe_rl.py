@@ -65,7 +65,7 @@ def test_safe_rl_wraps_the_shield_and_keeps_the_api():
     env = SafeRLParallelEnv(CBFShield(uavtrack_v0.parallel_env(scenario="A", max_cycles=40)))
     try:
         env.reset(seed=1)
-        out = env.step({a: env.action_space(a).sample() for a in env.agents})
+        out = env.step({a: np.ones(4, np.float32) for a in env.agents})  # full speed
         assert len(out) == 6 and all(c == 0.0 for c in out[2].values())  # the shield is on
         assert "shield" in out[5]["uav_0"]
         assert env.observation_space("uav_0") == env.env.observation_space("uav_0")

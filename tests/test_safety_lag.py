@@ -69,20 +69,26 @@ def pair_case(rng: np.random.Generator):
     return p, v, u, ctx
 
 
-def pair_barriers(p, v, u):
-    """(kind, gamma1, h(t)) of the pair's collision (20) and connectivity (29) barriers."""
+PAIR_GAMMA = {UAV: CBF.gamma_s, CONNECT: CBF.gamma_c}
+
+
+def pair_rate(p, v, u, kind) -> float:
+    """The HOCBF condition of the pair's collision (20) or connectivity (29) barrier when the
+    two UAVs fly the commands ``u`` from (p, v)."""
     traj = [path(p[i], v[i], u[i]) for i in range(2)]
-    return (
-        (UAV, CBF.gamma_s, lambda t: np.sum((traj[0](t) - traj[1](t)) ** 2) - CBF.r_s**2),
-        (CONNECT, CBF.gamma_c, lambda t: CBF.r_c**2 - np.sum((traj[0](t) - traj[1](t)) ** 2)),
-    )
+
+    def h(t):
+        d2 = np.sum((traj[0](t) - traj[1](t)) ** 2)
+        return d2 - CBF.r_s**2 if kind == UAV else CBF.r_c**2 - d2
+
+    return hocbf_rate(h, PAIR_GAMMA[kind])
 
 
-def own_slack(ctx, kind, u) -> tuple[float, float]:
-    """b - A u of the pair row of ``kind`` (without the margin), and the row's h."""
+def own_slack(ctx, kind, u) -> float:
+    """b - A u of the pair row of ``kind`` (without the margin)."""
     rows, sel = rows_of(ctx, kind)
     r = sel[0]
-    return rows.b[r] + rows.margin[r] - rows.A[r] @ u, rows.h[r]
+    return rows.b[r] + rows.margin[r] - rows.A[r] @ u
 
 
 @pytest.mark.parametrize("seed", range(12))
@@ -93,11 +99,10 @@ def test_pair_rows_split_the_second_order_condition(seed):
     team-mate's command at its velocity (each UAV brakes for the pair)."""
     rng = np.random.default_rng(600 + seed)
     p, v, u, ctx = pair_case(rng)
-    for kind, gamma1, h_of in pair_barriers(p, v, u):
-        rate = hocbf_rate(h_of, gamma1)
-        # the pair's need: the condition with both commands at their velocities
-        need = hocbf_rate(pair_barriers(p, v, v)[0 if kind == UAV else 1][2], gamma1)
-        total = sum(own_slack(ctx[i], kind, u[i])[0] for i in range(2))
+    for kind in (UAV, CONNECT):
+        rate = pair_rate(p, v, u, kind)
+        need = pair_rate(p, v, v, kind)  # the condition with both commands at their velocities
+        total = sum(own_slack(ctx[i], kind, u[i]) for i in range(2))
         if need >= 0.0:
             assert total == pytest.approx(rate, rel=1e-5, abs=1e-5)
         else:  # each row asks for the whole braking: both rows met leave the pair -need > 0
@@ -105,11 +110,8 @@ def test_pair_rows_split_the_second_order_condition(seed):
             for i in range(2):
                 alone = [u[0], u[1]]
                 alone[1 - i] = v[1 - i]
-                expected = hocbf_rate(
-                    pair_barriers(p, v, alone)[0 if kind == UAV else 1][2], gamma1
-                )
-                assert own_slack(ctx[i], kind, u[i])[0] == pytest.approx(
-                    expected, rel=1e-5, abs=1e-5
+                assert own_slack(ctx[i], kind, u[i]) == pytest.approx(
+                    pair_rate(p, v, alone, kind), rel=1e-5, abs=1e-5
                 )
 
 
@@ -126,9 +128,8 @@ def test_one_uav_keeps_a_closing_pair_safe_when_its_team_mate_cannot_brake():
     rows, sel = rows_of(ctx, UAV)
     a, b = rows.A[sel[0]], rows.b[sel[0]] + rows.margin[sel[0]]
     u0 = v[0] - (a @ v[0] - b) / (a @ a) * a  # the projection of coasting onto the row
-    need = hocbf_rate(pair_barriers(p, v, v)[0][2], CBF.gamma_s)
-    assert need < 0.0  # the pair must brake
-    assert hocbf_rate(pair_barriers(p, v, [u0, v[1]])[0][2], CBF.gamma_s) >= -1e-6
+    assert pair_rate(p, v, v, UAV) < 0.0  # the pair must brake
+    assert pair_rate(p, v, [u0, v[1]], UAV) >= -1e-6
 
 
 @pytest.mark.parametrize("seed", range(5))

@@ -142,13 +142,13 @@ class NeighbourTable:
 
     def update(self, messages: dict[str, np.ndarray]) -> None:
         """Take this step's messages (team-mate -> position); the others age by one step."""
-        index = self._index
-        ks = [index[name] for name in messages if name in index]
-        pos = (
-            np.array([messages[name] for name in messages if name in index], float)
-            if ks
-            else _NO_POSITIONS
-        )
+        ks, heard = [], []
+        for name, pos in messages.items():
+            k = self._index.get(name)
+            if k is not None:
+                ks.append(k)
+                heard.append(pos)
+        pos = np.array(heard, float) if heard else _NO_POSITIONS
         _take_messages(
             np.array(ks, np.int64), pos, self._pos, self._vel, self._vel_err, self._age,
             self._known, self.dt, self.accel_bound or 0.0, self.speed_bound, self.timeout,

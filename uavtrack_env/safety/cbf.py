@@ -447,7 +447,7 @@ class RowBuilder:
             dv[sl] = v - nb_v[index[sl]]
             sign = 2.0 if sl is uav else -2.0  # H = 2I for (20), -2I for (29)
             curv[sl] = sign * np.einsum("ij,ij->i", dv[sl], dv[sl])
-            gamma1[sl], share[sl] = g1, 0.5
+            gamma1[sl] = g1
         grad = -A
         if sizes[1]:
             curv[obs] = self._obstacle_curvature(v, grad[obs], h[obs])
