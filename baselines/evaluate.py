@@ -82,8 +82,10 @@ def world_kwargs(
     noise: bool = True,
     render: bool = True,
 ) -> dict[str, Any]:
-    """The env keyword arguments of an evaluation world (EnvConfig fields)."""
+    """The env keyword arguments of an evaluation world: the paper's settings (r = -c, a
+    collision ends the episode) with these fields."""
     kw: dict[str, Any] = {
+        "defaults": "paper",
         "scenario": scenario,
         "init": init,
         "max_cycles": steps,

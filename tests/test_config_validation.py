@@ -192,7 +192,7 @@ BAD = [
         "terminate_on_collision",
         "none",
         V,
-        r"terminate_on_collision must be 'agent' or 'all', got 'none'",
+        r"terminate_on_collision must be 'agent', 'all' or 'never', got 'none'",
     ),
     case(EnvConfig, "n_neighbours", 2.5, V, rf"n_neighbours must be {INT} >= 0, got 2\.5"),
     case(EnvConfig, "n_obstacles_obs", -1, V, rf"n_obstacles_obs must be {INT} >= 0"),

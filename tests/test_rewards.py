@@ -1,4 +1,5 @@
-"""Reward shapes: -c (eq. 18) by default, exp(-c) for RL, and the collision penalty."""
+"""Reward shapes: exp(-c) for RL by default, the paper's -c (eq. 18) with defaults="paper", the
+collision penalty, and what a collision ends."""
 
 from __future__ import annotations
 
@@ -24,11 +25,55 @@ def _rollout(env, steps: int, down_speed: float = 0.0):
     return out
 
 
-def test_default_reward_is_minus_the_stage_cost(make_env):
-    for rew, infos in _rollout(make_env(), 20):
+def test_paper_defaults_give_minus_the_stage_cost_and_end_the_team(make_env):
+    env = make_env(defaults="paper")
+    assert env.config.terminate_on_collision == "all"
+    assert env.config.reward.collision_penalty == 0.0
+    for rew, infos in _rollout(env, 20):
         for a, r in rew.items():
             assert r == pytest.approx(infos[a]["reward_tracking"] + infos[a]["reward_effort"])
             assert r <= 0.0
+
+
+def test_rl_defaults_reward_exp_with_a_penalty_and_end_only_the_colliding_uav(make_env):
+    env = make_env()
+    assert env.config.reward.shape == "exp" and env.config.reward.collision_penalty == 10.0
+    steps = _rollout(env, 40, down_speed=0.29)  # uav_0 hits the ground
+    rew, infos = steps[-1]
+    assert infos["uav_0"]["violations"]["collision"]
+    c = -(infos["uav_0"]["reward_tracking"] + infos["uav_0"]["reward_effort"])
+    assert rew["uav_0"] == pytest.approx(math.exp(-c) - 10.0)
+    assert env.agents == ["uav_1", "uav_2"]  # the team flies on
+
+
+def test_explicit_fields_override_the_named_defaults(make_env):
+    env = make_env(defaults="paper", reward={"lost_penalty": 2.0}, terminate_on_collision="agent")
+    cfg = env.config
+    assert cfg.reward.shape == "cost" and cfg.reward.lost_penalty == 2.0
+    assert cfg.terminate_on_collision == "agent"
+    assert make_env(defaults="paper", reward={"shape": "exp"}).config.reward.shape == "exp"
+    with pytest.raises(ValueError, match="unknown defaults 'gym'"):
+        make_env(defaults="gym")
+
+
+def test_never_terminate_keeps_the_crashed_uav_and_charges_every_step_in_collision(make_env):
+    env = make_env(terminate_on_collision="never", max_cycles=80)
+    env.reset(seed=3)
+    costs, ended = [], False
+    for _ in range(60):
+        acts = {a: np.zeros(4, np.float32) for a in env.agents}
+        acts["uav_0"] = np.array([0.0, 0.29, 0.02, 0.0], np.float32)
+        _, rew, term, _, infos = env.step(acts)
+        ended |= any(term.values())
+        info = infos["uav_0"]
+        costs.append(info["costs"]["collision"])
+        assert info["cost"] == sum(info["costs"].values())
+        if info["violations"]["collision"]:
+            c = -(info["reward_tracking"] + info["reward_effort"])
+            assert rew["uav_0"] == pytest.approx(math.exp(-c) - 10.0)
+    assert not ended and env.agents == ["uav_0", "uav_1", "uav_2"]
+    first = costs.index(1.0)
+    assert first > 10 and all(c == 1.0 for c in costs[first:])  # below ground from then on
 
 
 def test_exp_reward_is_exp_of_minus_the_stage_cost(make_env):

@@ -200,6 +200,12 @@ def test_tiny_training_writes_checkpoint(local_ray, tmp_path, shield, monkeypatc
     assert record["env"]["max_cycles"] == 20 and record["commit"]
     if shield:
         assert 0.0 <= history[0]["shield_intervention_rate"] <= 1.0
+    # per-agent return, as train.ppo logs it: 20 steps of exp(-c) in (0, 1] at most (no penalty
+    # for a shielded run), and the team's sum over 3 agents
+    per_agent = history[0]["agent_return_mean"]
+    assert per_agent == pytest.approx(history[0]["episode_return_mean"] / 3)
+    if shield:
+        assert 0.0 < per_agent <= 20.0
 
     # the saved shared module maps an env observation to a 4-d Gaussian (mean, log std)
     module = rllib_ppo.load_policy(checkpoint)

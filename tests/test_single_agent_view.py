@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import warnings
 
 import gymnasium
@@ -79,7 +80,7 @@ def test_step_returns_the_agents_view_and_others_follow_callable(make_view):
     np.testing.assert_allclose(moved, 5.0 / 80.0, rtol=1e-9)  # the others flew at 5 m/s
     assert obs2.shape == view.observation_space.shape and obs2 in view.observation_space
     assert isinstance(reward, float) and reward == pytest.approx(
-        info2["reward_tracking"] + info2["reward_effort"]
+        math.exp(info2["reward_tracking"] + info2["reward_effort"])  # exp(-c), the RL default
     )
     assert terminated is False and truncated is False
 

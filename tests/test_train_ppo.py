@@ -23,13 +23,14 @@ UAV_KEYS = METRICS_UAV_KEYS | {"theta_ok", "steps", "detection_kept_ok", "max_bl
 SMOKE = [
     "--n-envs", "2", "--n-steps", "64", "--batch-size", "192", "--n-epochs", "1",
     "--max-cycles", "100", "--eval-duration", "0.25", "--eval-seeds", "1",
-    "--checkpoint-freq", "384", "--no-progress", "--seed", "0",
+    "--checkpoint-freq", "384", "--no-progress", "--seed", "0", "--evaluate",
 ]  # fmt: skip
 
 
-def _check_metrics(out, shielded: bool) -> None:
+def _check_metrics(out, shielded: bool, calls: int = 1) -> None:
     runs = json.loads((out / "metrics.json").read_text())
-    assert [(m["scenario"], m["init"]) for m in runs] == [("A", 0), ("A", 1), ("random", 0)]
+    worlds = [("A", 0), ("A", 1), ("random", 0)]
+    assert [(m["scenario"], m["init"]) for m in runs] == worlds * calls
     for m in runs:
         assert set(m["uavs"]) == {"uav_0", "uav_1", "uav_2"}
         for u in m["uavs"].values():
@@ -71,6 +72,14 @@ def test_smoke_checkpoint_and_resume(tmp_path, shield):
     assert after == before + 384
     saved = json.loads((out / "args.json").read_text())
     assert saved["num_timesteps"] == 1152 and saved["shield"] is True
+    assert [(c["from_timesteps"], c["to_timesteps"]) for c in saved["calls"]] == [
+        (0, 768),
+        (768, 1152),
+    ]
+    assert saved["training_violations"]["agent_steps"] == sum(
+        c["training_violations"]["agent_steps"] for c in saved["calls"]
+    )
+    _check_metrics(out, shield, calls=2)  # the second evaluation is appended
     path, norm = ppo.last_checkpoint(out)
     assert path.name == "ppo_1152_steps.zip" and norm is not None
     assert PPO.load(path, device="cpu").num_timesteps == 1152

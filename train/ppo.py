@@ -1,21 +1,28 @@
-"""Shared-parameter PPO (Stable-Baselines3, torch, CPU) on random worlds, shielded or not.
+"""Shared-parameter PPO (Stable-Baselines3, torch, CPU) on random worlds: shielded, unshielded
+or PPO-Lagrangian.
 
     python -m train.ppo --shield --timesteps 200000 --seed 0 --out runs/ppo-shield
     python -m train.ppo --no-shield --timesteps 200000 --seed 0 --out runs/ppo
+    python -m train.ppo --no-shield --lagrangian --cost-limit 1 --out runs/ppo-lag
     python -m train.ppo --timesteps 100000 --resume runs/ppo-shield     # 100k more steps
 
 One policy drives every UAV (each agent of each env copy is one row of
 `uavtrack_env.wrappers.sb3.SharedPolicyVecEnv`); with ``--shield`` every action passes the
-expert's CBF-QP (`CBFShield`) in training and in evaluation. Writes into DIR: ``tb/``
-(TensorBoard), ``checkpoints/`` (every ``--checkpoint-freq`` agent-steps, with the VecNormalize
-statistics), ``model.zip`` + ``vecnormalize.pkl`` (final), ``args.json`` and ``metrics.json``
-(a list of evaluation episodes in the schema of ``baselines/evaluate.py`` plus
-``violations_per_1000_steps`` and ``shield_intervention_rate``). Step counts are agent-steps
-(SB3's ``num_timesteps``: rows x vector steps).
+expert's CBF-QP (`CBFShield`) in training and in evaluation; with ``--lagrangian`` the cost is
+penalised by an adapted multiplier (`train.lagrangian`). Writes into DIR: ``tb/``
+(TensorBoard: ``rollout/ep_cost_mean``, ``safety/*_rate``, ``lagrangian/lambda``),
+``checkpoints/`` (every ``--checkpoint-freq`` agent-steps, with the VecNormalize statistics),
+``model.zip`` + ``vecnormalize.pkl`` (final), ``args.json`` (every call's steps, time and
+violation counts under ``calls``) and, with ``--evaluate``, ``metrics.json`` (evaluation
+episodes in the schema of ``baselines/evaluate.py``; a resumed run appends). The console shows a
+learning-curve line every ``--log-every`` agent-steps. Step counts are agent-steps (SB3's
+``num_timesteps``: rows x vector steps); ``--timesteps`` stops at the first vector step that
+reaches it.
 
-Reward: ``exp(-c)`` per step (c the stage cost of eq. 18) minus a collision penalty, so that
-ending an episode by crashing never pays (with the env's default ``-c``, unshielded PPO learned
-to crash within 0.4 s). Training worlds start the UAVs up to ``--start-offset`` m off formation.
+The world (`train.world.TrainingWorld`, shared with `train.rllib_ppo`): seeded random worlds, UAVs
+started up to ``--start-offset`` m off formation, and the env's RL defaults: r = exp(-c) (c the
+stage cost of eq. 18) minus a collision penalty, so that ending an episode by crashing never pays,
+and a collision ends that UAV's episode only.
 
 Warm start from the expert (``--bc-episodes N``): N expert episodes are recorded (cached in
 ``--bc-demos``), the actor is fitted to them (checkpoint 0), the critic alone trains for
@@ -51,21 +58,23 @@ from uavtrack_env.presets import (
 )
 from uavtrack_env.provenance import cli_command, config_record
 
+from .lagrangian import LagrangianConfig
+from .world import WORLD_FIELDS, TrainingWorld
+
 ENV_FIELDS = (
     "shield",
-    "n_uavs",
-    "max_cycles",
-    "terminate_on_collision",
-    "dynamics",
     "n_envs",
-    "reward_shape",
-    "collision_penalty",
-    "start_offset",
-    "start_heading_offset",
     "preset",
     "set",
+    "lagrangian",
+    "cost_limit",
+    "lambda_lr",
+    *WORLD_FIELDS,
 )
 """Arguments that define the training env; ``--resume`` takes them from the run's args.json."""
+_WORLD_HELP = {f.name: f.metadata for f in dataclasses.fields(TrainingWorld)}
+BC_STATS = ("bc_samples", "bc_val_loss_first_epoch", "bc_val_loss")
+"""What `train.bc.pretrain` reports (kept in args.json across ``--resume``)."""
 BC_SEED = 50_000
 """Demonstration worlds are seeded BC_SEED + seed + episode, apart from the evaluation seeds."""
 
@@ -88,20 +97,18 @@ class Args:
         default=None, metadata={"help": "continue the run in DIR from its last checkpoint"}
     )
     n_envs: int = field(default=4, metadata={"help": "env copies (rows = copies x n_uavs)"})
-    n_uavs: int = field(default=3, metadata={"help": "UAVs per random world"})
-    max_cycles: int = field(default=1200, metadata={"help": "training episode length (80 Hz)"})
+    n_uavs: int = field(default=TrainingWorld.n_uavs, metadata=_WORLD_HELP["n_uavs"])
+    max_cycles: int = field(default=TrainingWorld.max_cycles, metadata=_WORLD_HELP["max_cycles"])
     terminate_on_collision: str = field(
-        default="all", metadata={"help": "'all' or 'agent' (SharedPolicyVecEnv pads dead rows)"}
+        default=TrainingWorld.terminate_on_collision,
+        metadata=_WORLD_HELP["terminate_on_collision"],
     )
-    dynamics: str = field(
-        default="integrator", metadata={"help": "'integrator' (eq. 3, shield exact) or 'lag'"}
-    )
+    dynamics: str = field(default=TrainingWorld.dynamics, metadata=_WORLD_HELP["dynamics"])
     reward_shape: str = field(
-        default="exp",
-        metadata={"help": "'exp' (r = exp(-c) in (0, 1]: crashing never pays) or 'cost' (r = -c)"},
+        default=TrainingWorld.reward_shape, metadata=_WORLD_HELP["reward_shape"]
     )
     collision_penalty: float = field(
-        default=10.0, metadata={"help": "reward subtracted on a UAV's collision step"}
+        default=TrainingWorld.collision_penalty, metadata=_WORLD_HELP["collision_penalty"]
     )
     n_steps: int = field(default=256, metadata={"help": "PPO rollout length per row"})
     batch_size: int = field(default=512, metadata={"help": "PPO minibatch size"})
@@ -133,10 +140,10 @@ class Args:
         metadata={"help": "cloning-loss minibatch steps after every PPO update (0: off)"},
     )
     start_offset: float = field(
-        default=3.0, metadata={"help": "training worlds: UAV start offset from formation (m)"}
+        default=TrainingWorld.start_offset, metadata=_WORLD_HELP["start_offset"]
     )
     start_heading_offset: float = field(
-        default=0.3, metadata={"help": "training worlds: start heading offset (rad)"}
+        default=TrainingWorld.start_heading_offset, metadata=_WORLD_HELP["start_heading_offset"]
     )
     value_warmup: int = field(
         default=100_000,
@@ -151,6 +158,25 @@ class Args:
     )
     eval_seeds: int = field(default=3, metadata={"help": "seeded random worlds to evaluate on"})
     eval_duration: float = field(default=60.0, metadata={"help": "evaluation episode length (s)"})
+    lagrangian: bool = field(
+        default=False,
+        metadata={"help": "PPO-Lagrangian: penalise the cost with an adapted multiplier"},
+    )
+    cost_limit: float = field(
+        default=LagrangianConfig.cost_limit,
+        metadata={"help": "--lagrangian: episode cost per agent allowed (violating steps)"},
+    )
+    lambda_lr: float = field(
+        default=LagrangianConfig.lambda_lr,
+        metadata={"help": "--lagrangian: the multiplier's step size per rollout"},
+    )
+    evaluate: bool = field(
+        default=False,
+        metadata={"help": "after training, evaluate on --eval-scenarios/--eval-seeds"},
+    )
+    log_every: int = field(
+        default=10_000, metadata={"help": "agent-steps between learning-curve lines"}
+    )
     threads: int = field(default=1, metadata={"help": "torch CPU threads"})
     progress: bool = field(default=True, metadata={"help": "show a progress bar"})
 
@@ -191,22 +217,19 @@ def make_args(**given: Any) -> Args:
     if args.out is None:
         raise ValueError("--out DIR is required (or --resume DIR)")
     args.out = Path(args.out)
-    for name in ("timesteps", "n_envs", "n_uavs", "max_cycles", "n_steps", "batch_size"):
+    positive = ("timesteps", "n_envs", "n_uavs", "max_cycles", "n_steps", "batch_size", "log_every")
+    for name in positive:
         if int(getattr(args, name)) < 1:
             raise ValueError(f"--{name.replace('_', '-')} must be >= 1")
-    if args.terminate_on_collision not in ("all", "agent"):
-        raise ValueError("--terminate-on-collision must be 'all' or 'agent'")
     if args.bc_anchor > 0 and args.bc_episodes < 1:
         raise ValueError("--bc-anchor needs demonstrations: set --bc-episodes")
-    if args.reward_shape not in ("exp", "cost"):
-        raise ValueError(f"--reward-shape must be 'exp' or 'cost', got {args.reward_shape!r}")
-    if args.dynamics not in ("integrator", "lag"):
-        raise ValueError("--dynamics must be 'integrator' or 'lag'")
     if set(args.eval_scenarios) - set("ABC"):
         raise ValueError(f"--eval-scenarios takes letters of 'ABC', got {args.eval_scenarios!r}")
     if not args.eval_duration > 0:
         raise ValueError("--eval-duration must be > 0 s")
     args.set = tuple(args.set)
+    world_settings(args)  # a bad world option fails here, naming the EnvConfig field
+    lagrangian_settings(args)
     expert_config_from(args.preset, list(args.set))  # a bad preset or --set fails here
     return args
 
@@ -216,20 +239,14 @@ def expert_settings(args: Args) -> ExpertConfig:
     return expert_config_from(args.preset, list(args.set))
 
 
+def lagrangian_settings(args: Args, lambda_init: float = 0.0) -> LagrangianConfig:
+    """The multiplier's settings (checked even without ``--lagrangian``)."""
+    return LagrangianConfig(args.cost_limit, args.lambda_lr, lambda_init)
+
+
 def world_settings(args: Args) -> dict[str, Any]:
-    """The training world's env keyword arguments (EnvConfig fields)."""
-    return {
-        "scenario": "random",
-        "n_uavs": args.n_uavs,
-        "max_cycles": args.max_cycles,
-        "terminate_on_collision": args.terminate_on_collision,
-        "dynamics": {"model": args.dynamics},
-        "reward": {"shape": args.reward_shape, "collision_penalty": args.collision_penalty},
-        "random_world": {
-            "start_offset": args.start_offset,
-            "start_heading_offset": args.start_heading_offset,
-        },
-    }
+    """The training world's env keyword arguments (`train.world.TrainingWorld`)."""
+    return TrainingWorld.from_fields(args).env_kwargs()
 
 
 # ------------------------------------------------------------------------ env
@@ -251,13 +268,17 @@ def env_fn(args: Args):
     return make
 
 
-def make_vec_env(args: Args):
-    """SharedPolicyVecEnv -> AgentVecMonitor (-> VecNormalize), seeded."""
+def make_vec_env(args: Args, lambda_init: float = 0.0):
+    """SharedPolicyVecEnv -> AgentVecMonitor (-> LagrangianReward) (-> VecNormalize), seeded."""
     from stable_baselines3.common.vec_env import VecNormalize
 
     from uavtrack_env.wrappers.sb3 import AgentVecMonitor, SharedPolicyVecEnv
 
+    from .lagrangian import LagrangianReward
+
     vec = AgentVecMonitor(SharedPolicyVecEnv(env_fn(args), n_copies=args.n_envs))
+    if args.lagrangian:
+        vec = LagrangianReward(vec, lagrangian_settings(args, lambda_init))
     if args.normalize:
         vec = VecNormalize(vec, gamma=args.gamma)
     vec.seed(args.seed)
@@ -282,36 +303,6 @@ def last_checkpoint(run_dir: Path) -> tuple[Path, Path | None]:
     return path, norm if norm.exists() else None
 
 
-def safety_counter():
-    """SB3 callback counting violation agent-steps (and shield interventions) during training;
-    TensorBoard ``safety/*``; ``.totals`` for args.json."""
-    from stable_baselines3.common.callbacks import BaseCallback
-
-    class SafetyCounter(BaseCallback):
-        def __init__(self) -> None:
-            super().__init__()
-            self.totals = dict.fromkeys(
-                ("agent_steps", "collision", "disconnection", "occlusion", "shield_active"), 0
-            )
-
-        def _on_step(self) -> bool:
-            for info in self.locals["infos"]:
-                v = info.get("violations")
-                if v is None:  # absorbing row of a finished agent
-                    continue
-                self.totals["agent_steps"] += 1
-                for k in ("collision", "disconnection", "occlusion"):
-                    self.totals[k] += bool(v[k])
-                self.totals["shield_active"] += bool(info.get("shield", {}).get("active", False))
-            return True
-
-        def _on_rollout_end(self) -> None:
-            for k, v in self.totals.items():
-                self.logger.record(f"safety/{k}", v)
-
-    return SafetyCounter()
-
-
 def save_checkpoint(model, vec, ckdir: Path) -> None:
     """Model and VecNormalize statistics under CheckpointCallback's names (for ``--resume``)."""
     from stable_baselines3.common.vec_env import VecNormalize
@@ -319,35 +310,6 @@ def save_checkpoint(model, vec, ckdir: Path) -> None:
     model.save(ckdir / f"ppo_{model.num_timesteps}_steps.zip")
     if isinstance(vec, VecNormalize):
         vec.save(str(ckdir / f"ppo_vecnormalize_{model.num_timesteps}_steps.pkl"))
-
-
-def _progress_callback(enabled: bool):
-    """SB3's rich progress bar if rich is installed, else a tqdm callback (None if disabled)."""
-    from stable_baselines3.common.callbacks import BaseCallback
-
-    if not enabled:
-        return None, False
-    try:
-        import rich  # noqa: F401
-
-        return None, True
-    except ImportError:
-        pass
-    from tqdm import tqdm
-
-    class TqdmCallback(BaseCallback):
-        def _on_training_start(self) -> None:
-            total = self.locals["total_timesteps"]
-            self.bar = tqdm(total=total, initial=self.model.num_timesteps, unit="step")
-
-        def _on_step(self) -> bool:
-            self.bar.update(self.model.num_timesteps - self.bar.n)
-            return True
-
-        def _on_training_end(self) -> None:
-            self.bar.close()
-
-    return TqdmCallback(), False
 
 
 # ---------------------------------------------------------------------- train
@@ -374,11 +336,15 @@ def train(args: Args):
     import torch
     from stable_baselines3.common.callbacks import CheckpointCallback
 
+    from .callbacks import StopAtTimesteps, TrainingLog, progress_callback
+    from .lagrangian import LagrangianReward, MultiplierUpdate
+
     torch.set_num_threads(args.threads)
     out = args.out
     ckdir = out / "checkpoints"
     ckdir.mkdir(parents=True, exist_ok=True)
-    model, vec = _model_and_env(args)
+    previous = _previous_calls(args)
+    model, vec = _model_and_env(args, previous.get("lagrangian_lambda", 0.0))
     bc_stats: dict = {}
     demos = demonstrations(args) if args.bc_episodes > 0 else None  # loaded once
     if args.resume is None and demos is not None:
@@ -389,40 +355,94 @@ def train(args: Args):
         name_prefix="ppo",
         save_vecnormalize=True,
     )
-    bar, rich_bar = _progress_callback(args.progress)
-    t0 = time.perf_counter()
-    start = model.num_timesteps
-    safety = safety_counter()
-    callbacks = [c for c in (ckpt, bar, safety) if c is not None]
+    bar, rich_bar = progress_callback(args.progress)
+    log = TrainingLog(args.log_every, echo=_echo(args.progress and not rich_bar))
+    callbacks = [c for c in (ckpt, bar, StopAtTimesteps()) if c is not None]
+    penalty = _wrapper(vec, LagrangianReward)
+    if penalty is not None:
+        callbacks.append(MultiplierUpdate(penalty))
+        log.extra["lambda"] = lambda: penalty.lam
+    callbacks.append(log)
     if args.bc_anchor > 0:
         from train import bc
 
         callbacks.append(bc.anchor_callback(*demos, args.bc_anchor, seed=args.seed))
+    t0 = time.perf_counter()
+    start = model.num_timesteps
     _learn(args, model, callbacks, rich_bar, bool(bc_stats))
     elapsed = time.perf_counter() - t0
     _save_run(args, model, vec, ckdir)
+    call = {
+        "from_timesteps": int(start),
+        "to_timesteps": int(model.num_timesteps),
+        "train_seconds": elapsed,
+        "agent_steps_per_s": (model.num_timesteps - start) / elapsed,
+        "training_violations": log.totals,  # agent-steps of this call
+    }
+    calls = [*previous.get("calls", []), call]
     saved = {k: (str(v) if isinstance(v, Path) else v) for k, v in dataclasses.asdict(args).items()}
     saved.update(
         num_timesteps=int(model.num_timesteps),
-        this_call_timesteps=int(model.num_timesteps - start),
-        train_seconds=elapsed,
-        agent_steps_per_s=(model.num_timesteps - start) / elapsed,
+        this_call_timesteps=call["to_timesteps"] - call["from_timesteps"],
+        train_seconds=sum(c["train_seconds"] for c in calls),
+        agent_steps_per_s=call["agent_steps_per_s"],
+        **{k: previous[k] for k in BC_STATS if k in previous},
         **bc_stats,
-        training_violations=safety.totals,  # agent-steps of this call
+        training_violations={
+            k: sum(c["training_violations"][k] for c in calls) for k in log.totals
+        },
+        calls=calls,
     )
+    if penalty is not None:
+        saved["lagrangian_lambda"] = penalty.lam
     (out / "args.json").write_text(json.dumps(saved, indent=2))
     (out / "config.json").write_text(json.dumps(run_record(args), indent=2))
     return model, vec
 
 
-def _model_and_env(args: Args):
+def _previous_calls(args: Args) -> dict:
+    """args.json of the run ``--resume`` continues (empty for a new run)."""
+    path = None if args.resume is None else Path(args.resume) / "args.json"
+    if path is None or not path.exists():
+        return {}
+    saved = json.loads(path.read_text())
+    if "calls" not in saved and "num_timesteps" in saved:  # a run of one call
+        saved["calls"] = [
+            {
+                "from_timesteps": saved["num_timesteps"] - saved.get("this_call_timesteps", 0),
+                "to_timesteps": saved["num_timesteps"],
+                "train_seconds": saved.get("train_seconds", 0.0),
+                "agent_steps_per_s": saved.get("agent_steps_per_s", 0.0),
+                "training_violations": saved.get("training_violations", {}),
+            }
+        ]
+    return saved
+
+
+def _echo(progress_bar: bool):
+    """print, or tqdm.write while a tqdm bar is on the terminal."""
+    if progress_bar:
+        from tqdm import tqdm
+
+        return tqdm.write
+    return print
+
+
+def _wrapper(vec, kind: type):
+    """The first VecEnvWrapper of type ``kind`` in the chain below ``vec`` (or None)."""
+    while vec is not None and not isinstance(vec, kind):
+        vec = getattr(vec, "venv", None)
+    return vec
+
+
+def _model_and_env(args: Args, lambda_init: float):
     """The VecEnv and the PPO model: the last checkpoint of ``--resume`` (with its VecNormalize
-    statistics), else a new model with the command line's hyperparameters."""
+    statistics and multiplier), else a new model with the command line's hyperparameters."""
     from stable_baselines3 import PPO
     from stable_baselines3.common.vec_env import VecNormalize
 
     out = args.out
-    vec = make_vec_env(args)
+    vec = make_vec_env(args, lambda_init)
     if args.resume is not None:
         path, norm = last_checkpoint(args.resume)
         if isinstance(vec, VecNormalize) and norm is not None:
@@ -546,6 +566,12 @@ def command_line(args: Args) -> list[str]:
     return argv
 
 
+def policy_label(args: Args) -> str:
+    """The run's name in tables: PPO or PPO-Lagrangian, with '+ shield' if shielded."""
+    name = "PPO-Lagrangian" if args.lagrangian else "PPO"
+    return f"{name} + shield" if args.shield else name
+
+
 def evaluate_model(model, vec, args: Args) -> list[dict]:
     """Deterministic policy on the paper's scenarios and seeded random worlds (shielded if
     trained shielded) -> one metrics dict per episode, also written to DIR/metrics.json."""
@@ -556,7 +582,7 @@ def evaluate_model(model, vec, args: Args) -> list[dict]:
         normalizer.training = False
     policy = SB3Policy(model, normalizer)
     steps = max(1, round(args.eval_duration / DT))
-    label = "PPO + shield" if args.shield else "PPO"
+    label = policy_label(args)
     shield = expert_settings(args) if args.shield else None
     record = run_record(args)
     runs = []
@@ -568,16 +594,24 @@ def evaluate_model(model, vec, args: Args) -> list[dict]:
         m.update(timesteps=int(model.num_timesteps), preset=args.preset, config=record)
         runs.append(m)
         env.close()
-    (args.out / "metrics.json").write_text(json.dumps(runs, indent=2))
+    path = args.out / "metrics.json"
+    earlier = json.loads(path.read_text()) if path.exists() else []
+    path.write_text(json.dumps(earlier + runs, indent=2))  # a resumed run appends
     return runs
 
 
 def main(argv: list[str] | None = None) -> list[dict]:
     args = parse_args(argv)
     model, vec = train(args)
+    print(f"trained to {model.num_timesteps} agent-steps; wrote {args.out}/ (model.zip, ...)")
+    if not args.evaluate:
+        vec.close()
+        flag = "--ppo-shield" if args.shield else "--ppo"
+        print(f"evaluate with --evaluate, or: python -m baselines.compare {flag} {args.out}")
+        return []
     runs = evaluate_model(model, vec, args)
     vec.close()
-    print(f"trained to {model.num_timesteps} agent-steps; evaluation ({args.eval_duration:g} s):")
+    print(f"evaluation ({args.eval_duration:g} s episodes):")
     print(table(runs))
     for m in runs:
         v = m["violations_per_1000_steps"]
@@ -587,7 +621,6 @@ def main(argv: list[str] | None = None) -> list[dict]:
             + ", ".join(f"{k} {x:.1f}" for k, x in v.items())
             + ("" if rate is None else f"; shield active {100 * rate:.1f} %")
         )
-    print(f"\nwrote {args.out}/ (model.zip, checkpoints/, tb/, metrics.json)")
     return runs
 
 

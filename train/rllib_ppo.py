@@ -36,6 +36,8 @@ from uavtrack_env.presets import (
 )
 from uavtrack_env.provenance import cli_command, config_record
 
+from .world import TrainingWorld, add_world_arguments
+
 ENV_NAME = "uavtrack_rllib"
 """Name under which ``make_rllib_env`` is registered with Ray Tune's registry."""
 POLICY_ID = "shared"
@@ -75,10 +77,9 @@ class RLlibPPOConfig:
     hidden: tuple[int, ...] = (128, 128)
     """Hidden layers of the shared MLP (policy and value function)."""
     seed: int = 0
-    env_kwargs: Mapping[str, Any] = field(
-        default_factory=lambda: {"scenario": "random", "max_cycles": 1200}
-    )
-    """Keyword arguments of ``uavtrack_env.parallel_env`` (fields of ``EnvConfig``)."""
+    env_kwargs: Mapping[str, Any] = field(default_factory=lambda: TrainingWorld().env_kwargs())
+    """Keyword arguments of ``uavtrack_env.parallel_env`` (fields of ``EnvConfig``); default:
+    `train.world.TrainingWorld`, the world of `train.ppo`."""
     slim_infos: bool = True
     """Reduce infos to flat floats before RLlib sees them (see module docstring)."""
     normalize: bool = True
@@ -190,6 +191,11 @@ def _on_episode_end(*, episode: Any, metrics_logger: Any = None, **_: Any) -> No
     if metrics_logger is None or not data:
         return
     steps = max(data["agent_steps"], 1.0)
+    agents = max(len(episode.agent_ids), 1)
+    # per agent, as train.ppo's AgentVecMonitor reports it: the two trainers' returns compare
+    metrics_logger.log_value(
+        "uavtrack_agent_return_mean", episode.get_return() / agents, reduce="mean"
+    )
     for key in VIOLATIONS:
         metrics_logger.log_value(f"uavtrack_{key}_agent_steps", data.get(key, 0.0), reduce="mean")
     if "shield_active" in data:
@@ -403,11 +409,7 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
         help="running mean/std observation filter",
     )
     p.add_argument("--hidden", default="128,128", help="hidden layer sizes of the shared MLP")
-    p.add_argument("--scenario", default="random", choices=["A", "B", "C", "random"])
-    p.add_argument("--n-uavs", type=int, default=3, help="UAVs per world (random worlds only)")
-    p.add_argument("--max-cycles", type=int, default=1200, help="episode length (80 Hz steps)")
-    p.add_argument("--dynamics", default="integrator", choices=["integrator", "lag"])
-    p.add_argument("--terminate-on-collision", default="all", choices=["all", "agent"])
+    add_world_arguments(p)
     return p.parse_args(argv)
 
 
@@ -439,13 +441,7 @@ def main(argv: Sequence[str] | None = None) -> Path:
         seed=args.seed,
         hidden=_parse_hidden(args.hidden),
         normalize=args.normalize,
-        env_kwargs={
-            "scenario": args.scenario,
-            "n_uavs": args.n_uavs,
-            "max_cycles": args.max_cycles,
-            "dynamics": {"model": args.dynamics},
-            "terminate_on_collision": args.terminate_on_collision,
-        },
+        env_kwargs=TrainingWorld.from_fields(args).env_kwargs(),
     )
     cpus = args.num_env_runners + args.num_learners + 1
     init_ray(args.address, num_cpus=cpus, working_dir=args.working_dir)

@@ -168,13 +168,13 @@ class RewardConfig:
     """Weights on u = [v_cx, v_cy, v_cz, omega_cy] in SI units (R_u diagonal, Table III)."""
     lost_penalty: float = 1.0
     """Added to the tracking error when the target is not detected."""
-    shape: str = "cost"
-    """'cost': r = -c with c the stage cost of eq. (18) (the paper's objective). 'exp':
-    r = exp(-c) in (0, 1], for RL: staying alive always pays, so a negative reward never makes
-    ending the episode (by crashing) the best policy, and a lost target cannot dominate the
-    scale."""
-    collision_penalty: float = 0.0
-    """Subtracted from the reward of a UAV on the step it collides (not in the paper)."""
+    shape: str = "exp"
+    """'exp' (for RL): r = exp(-c) in (0, 1] with c the stage cost of eq. (18): staying alive
+    always pays, so ending the episode by crashing is never the best policy, and a lost target
+    cannot dominate the scale. 'cost': r = -c, the paper's objective (``defaults="paper"``)."""
+    collision_penalty: float = 10.0
+    """Subtracted from the reward of a UAV on each step it is in collision (not in the paper;
+    0 with ``defaults="paper"``)."""
 
     def __post_init__(self) -> None:
         f = _Fields(self)
@@ -255,8 +255,10 @@ class EnvConfig:
     """Steps before truncation (4800 = 60 s at 80 Hz)."""
     render_mode: str | None = None
     """None, 'rgb_array' or 'human'."""
-    terminate_on_collision: Literal["agent", "all"] = "all"
-    """On a collision, end that agent only or the whole team."""
+    terminate_on_collision: Literal["agent", "all", "never"] = "agent"
+    """What a collision ends: 'agent' (that UAV leaves the episode, the team flies on), 'all'
+    (the whole team; the paper's evaluation, ``defaults="paper"``) or 'never' (Safety-
+    Gymnasium's convention: every UAV flies on and each step in collision is charged as cost)."""
     n_neighbours: int = 4
     """K nearest neighbours in the observation."""
     n_obstacles_obs: int = 4
@@ -284,7 +286,7 @@ class EnvConfig:
         )
         f.integer("max_cycles", lo=1, hi=MAX_EPISODE_STEPS)
         f.choice("render_mode", (None, "rgb_array", "human"))
-        f.choice("terminate_on_collision", ("agent", "all"))
+        f.choice("terminate_on_collision", ("agent", "all", "never"))
         f.integer("n_neighbours", lo=0)
         f.integer("n_obstacles_obs", lo=0)
         f.number("uav_radius", lo=0, lo_open=True)
@@ -305,15 +307,26 @@ class EnvConfig:
         )
 
     @classmethod
-    def from_kwargs(cls, **kwargs: Any) -> EnvConfig:
-        """Build from keyword arguments; nested configs may be given as dicts.
+    def from_kwargs(cls, defaults: str = "rl", **kwargs: Any) -> EnvConfig:
+        """Build from keyword arguments over the named ``defaults`` (`ENV_DEFAULTS`: 'rl', the
+        dataclass defaults, or 'paper'); nested configs may be given as dicts, which update the
+        named defaults field by field.
 
         Unknown names raise TypeError listing the valid ones.
         """
+        if defaults not in ENV_DEFAULTS:
+            raise ValueError(f"unknown defaults {defaults!r}; choose one of {sorted(ENV_DEFAULTS)}")
         fields = {f.name: f for f in dataclasses.fields(cls)}
         unknown = sorted(set(kwargs) - set(fields))
         if unknown:
-            raise TypeError(f"unknown argument(s) {unknown}; valid arguments are {sorted(fields)}")
+            valid = sorted([*fields, "defaults"])
+            raise TypeError(f"unknown argument(s) {unknown}; valid arguments are {valid}")
+        for name, base in ENV_DEFAULTS[defaults].items():
+            given = kwargs.get(name)
+            if name not in kwargs:
+                kwargs[name] = base
+            elif isinstance(given, dict) and isinstance(base, dict):
+                kwargs[name] = {**base, **given}
         values = {}
         for name, value in kwargs.items():
             default = getattr(cls(), name) if name in _NESTED else None
@@ -333,6 +346,18 @@ class EnvConfig:
             values[name] = value
         return cls(**values)
 
+
+ENV_DEFAULTS: dict[str, dict[str, Any]] = {
+    "rl": {},
+    "paper": {
+        "terminate_on_collision": "all",
+        "reward": {"shape": "cost", "collision_penalty": 0.0},
+    },
+}
+"""Named starting points of `EnvConfig.from_kwargs` (``parallel_env(defaults=...)``), as the
+fields they change from the dataclass defaults. 'rl' (default): r = exp(-c) minus a collision
+penalty, a collision ends that UAV only. 'paper': r = -c of eq. (18), a collision ends the
+episode for all (``baselines.evaluate``'s setting)."""
 
 _NESTED = {
     "camera",

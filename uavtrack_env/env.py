@@ -186,9 +186,10 @@ class UAVTrackEnv(ParallelEnv):
     neighbours and K nearest obstacles (camera frame, with masks).
 
     **Reward**: from the NMPC stage cost (18) on the true features (weights Table III),
-    c = sum q_k e_k^2 + lost_penalty * not_detected + sum r_k u_k^2: r = -c by default, or
-    r = exp(-c) with ``reward={"shape": "exp"}`` (for RL), minus ``reward.collision_penalty`` on a
-    collision. Both parts of -c are in ``info`` (``reward_tracking``, ``reward_effort``).
+    c = sum q_k e_k^2 + lost_penalty * not_detected + sum r_k u_k^2: r = exp(-c) in (0, 1] by
+    default (for RL: crashing never pays), minus ``reward.collision_penalty`` (10) on each step in
+    collision; the paper's r = -c with ``defaults="paper"`` or ``reward={"shape": "cost"}``. Both
+    parts of -c are in ``info`` (``reward_tracking``, ``reward_effort``).
 
     **Cost and violations** (``info[agent]``): ``violations = {collision, disconnection,
     occlusion}`` (bools), ``costs`` the same keys as floats (1.0 when violated this step, else
@@ -199,10 +200,14 @@ class UAVTrackEnv(ParallelEnv):
     value is finite: a nearest distance to nothing (a UAV alone, a world without obstacles) is
     ``NOTHING_NEAR`` (1e4 m).
 
-    **Episode end**: terminated on collision (that agent or all, ``terminate_on_collision``);
-    truncated after ``max_cycles`` steps (80 Hz).
+    **Episode end**: ``terminate_on_collision`` = 'agent' (default) terminates a UAV that
+    collides and the team flies on; 'all' terminates every UAV (``defaults="paper"``); 'never'
+    terminates none and charges each step in collision as cost (Safety-Gymnasium's convention).
+    Truncated after ``max_cycles`` steps (80 Hz).
 
-    **Arguments**: the fields of :class:`uavtrack_env.config.EnvConfig`; unknown names raise.
+    **Arguments**: the fields of :class:`uavtrack_env.config.EnvConfig`, over ``defaults``
+    ('rl', or 'paper': r = -c and a collision ends the episode for all, as in the paper's
+    evaluation; `uavtrack_env.config.ENV_DEFAULTS`); unknown names raise.
 
     **Seams**: ``validate_actions(actions)`` runs step()'s checks and scaling without stepping
     (u in SI units, clip flags); ``snapshot()`` returns the true state as a
@@ -651,7 +656,9 @@ class UAVTrackEnv(ParallelEnv):
     # ------------------------------------------------------------ episode end
     def _episode_end(self, collided: np.ndarray):
         cfg = self.config
-        if cfg.terminate_on_collision == "all" and collided.any():
+        if cfg.terminate_on_collision == "never":
+            collided = np.zeros_like(collided)  # charged as cost only
+        elif cfg.terminate_on_collision == "all" and collided.any():
             collided = self.alive.copy()
         truncate = self.num_cycles >= self.max_cycles
         terminations = {a: bool(collided[self._index[a]]) for a in self.agents}

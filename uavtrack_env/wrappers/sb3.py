@@ -224,10 +224,20 @@ class SharedPolicyVecEnv(VecEnv):
 
 
 class AgentVecMonitor(VecMonitor):
-    """SB3's VecMonitor that does not count the absorbing chains of dead agents as episodes."""
+    """SB3's VecMonitor that does not count the absorbing chains of dead agents as episodes and
+    adds each episode's summed ``info["cost"]`` as ``info["episode"]["c"]``."""
+
+    def reset(self) -> np.ndarray:
+        self.episode_costs = np.zeros(self.num_envs)
+        return super().reset()
 
     def step_wait(self) -> VecEnvStepReturn:
         obs, rewards, dones, infos = super().step_wait()
+        self.episode_costs += [float(info.get("cost", 0.0)) for info in infos]
+        for i in np.flatnonzero(dones):
+            if "episode" in infos[i]:
+                infos[i]["episode"]["c"] = float(self.episode_costs[i])
+            self.episode_costs[i] = 0.0
         for i in _flagged(dones, infos):
             infos[i].pop("episode", None)
             self.episode_count -= 1

@@ -1,0 +1,104 @@
+"""PPO-Lagrangian's penalty and multiplier, the exact step budget, the learning-curve log, and
+the training world both trainers share."""
+
+from __future__ import annotations
+
+import json
+
+import gymnasium
+import numpy as np
+import pytest
+
+pytest.importorskip("stable_baselines3")
+
+from stable_baselines3.common.vec_env import DummyVecEnv
+
+from train import ppo
+from train.lagrangian import LagrangianConfig, LagrangianReward
+from train.world import TrainingWorld
+from uavtrack_env.wrappers.sb3 import AgentVecMonitor
+
+
+class _CostlyEnv(gymnasium.Env):
+    """Reward 0.5 and cost 1 on every step; episodes of 4 steps."""
+
+    observation_space = gymnasium.spaces.Box(-1.0, 1.0, (1,), np.float32)
+    action_space = gymnasium.spaces.Box(-1.0, 1.0, (1,), np.float32)
+
+    def reset(self, *, seed=None, options=None):
+        super().reset(seed=seed)
+        self.t = 0
+        return np.zeros(1, np.float32), {}
+
+    def step(self, action):
+        self.t += 1
+        return np.zeros(1, np.float32), 0.5, self.t == 4, False, {"cost": 1.0}
+
+
+def _vec(lam: float = 0.0, **kw) -> LagrangianReward:
+    venv = AgentVecMonitor(DummyVecEnv([_CostlyEnv, _CostlyEnv]))
+    return LagrangianReward(venv, LagrangianConfig(lambda_init=lam, **kw))
+
+
+def test_penalised_reward_and_episode_cost():
+    vec = _vec(lam=3.0)
+    vec.reset()
+    for _ in range(4):
+        _, rewards, dones, infos = vec.step(np.zeros((2, 1), np.float32))
+        np.testing.assert_allclose(rewards, (0.5 - 3.0 * 1.0) / (1.0 + 3.0))
+    assert dones.all()
+    assert [info["episode"]["c"] for info in infos] == [4.0, 4.0]
+    assert [info["episode"]["r"] for info in infos] == [2.0, 2.0]  # the env's own return
+
+
+def test_multiplier_ascends_on_excess_cost_and_stays_non_negative():
+    vec = _vec(cost_limit=1.0, lambda_lr=0.1)
+    assert vec.update([3.0, 5.0]) == pytest.approx(0.1 * (4.0 - 1.0))
+    assert vec.update([]) == pytest.approx(0.3)  # no episode ended: no step
+    assert vec.update([0.0, 0.0, 0.0]) == pytest.approx(0.2)
+    assert vec.update([0.0] * 10) == pytest.approx(0.1)
+    assert vec.update([0.0] * 10) == pytest.approx(0.0, abs=1e-12)
+    assert vec.update([0.0]) == 0.0  # projected onto lambda >= 0
+
+
+@pytest.mark.parametrize("kw", [{"cost_limit": -1.0}, {"lambda_lr": 0.0}, {"lambda_init": -0.1}])
+def test_bad_lagrangian_settings_raise(kw):
+    with pytest.raises(ValueError, match=next(iter(kw))):
+        LagrangianConfig(**kw)
+
+
+def test_both_trainers_default_to_the_same_world():
+    pytest.importorskip("ray")
+    from train import rllib_ppo
+
+    world = TrainingWorld().env_kwargs()
+    assert ppo.world_settings(ppo.parse_args(["--out", "x"])) == world
+    assert dict(rllib_ppo.RLlibPPOConfig().env_kwargs) == world
+    cli = rllib_ppo.parse_args(["--out", "x"])
+    assert TrainingWorld.from_fields(cli).env_kwargs() == world
+    with pytest.raises(ValueError, match="terminate_on_collision"):
+        ppo.parse_args(["--out", "x", "--terminate-on-collision", "sometimes"])
+
+
+@pytest.mark.slow
+def test_exact_budget_lagrangian_log_and_resume(tmp_path, capsys):
+    out = tmp_path / "lag"
+    common = [
+        "--no-shield", "--n-envs", "2", "--n-steps", "64", "--batch-size", "192",
+        "--n-epochs", "1", "--max-cycles", "40", "--no-progress", "--log-every", "1",
+    ]  # fmt: skip
+    lagrangian = ["--lagrangian", "--cost-limit", "0"]
+    ppo.main([*common, *lagrangian, "--timesteps", "500", "--out", str(out)])
+    saved = json.loads((out / "args.json").read_text())
+    assert saved["num_timesteps"] == 504  # the first vector step (6 rows) at or past 500
+    assert not (out / "metrics.json").exists()  # evaluation is opt-in
+    lines = [ln for ln in capsys.readouterr().out.splitlines() if " steps | return" in ln]
+    assert len(lines) >= 2 and all("lambda" in ln and "violations/1k" in ln for ln in lines)
+    lam = saved["lagrangian_lambda"]
+    assert lam >= 0.0
+    ppo.main([*common, "--resume", str(out), "--timesteps", "300"])
+    again = json.loads((out / "args.json").read_text())
+    assert again["num_timesteps"] == 804 and again["lagrangian"] is True
+    assert [c["from_timesteps"] for c in again["calls"]] == [0, 504]
+    counted = [c["training_violations"]["agent_steps"] for c in again["calls"]]
+    assert again["training_violations"]["agent_steps"] == sum(counted) > 0

@@ -1,0 +1,164 @@
+"""SB3 callbacks of `train.ppo`: the learning curve (console and TensorBoard), the exact step
+budget and the progress bar.
+
+Rates are per agent-step of one rollout (a violation rate of 0.002 is 2 violating agent-steps
+per 1,000); episode returns and costs are per agent (one row of `SharedPolicyVecEnv`).
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+
+import numpy as np
+from stable_baselines3.common.callbacks import BaseCallback
+
+VIOLATIONS = ("collision", "disconnection", "occlusion")
+COUNTS = ("agent_steps", *VIOLATIONS, "shield_active")
+
+
+class StopAtTimesteps(BaseCallback):
+    """Ends ``learn`` once ``num_timesteps`` reaches its ``total_timesteps``, inside a rollout.
+
+    SB3 finishes the rollout it is in, which rounds the budget up to a multiple of
+    ``n_steps * num_envs``; this stops at the first vector step at or beyond the budget (so
+    the count overshoots by less than ``num_envs``). The steps of the unfinished rollout are
+    sampled but not trained on."""
+
+    def _on_training_start(self) -> None:
+        self.target = int(self.locals["total_timesteps"])
+
+    def _on_step(self) -> bool:
+        rollout_done = self.locals["n_steps"] + 1 >= self.locals["n_rollout_steps"]
+        return rollout_done or self.num_timesteps < self.target
+
+
+class TrainingLog(BaseCallback):
+    """Per rollout: mean episode return and cost per agent, violation and shield-intervention
+    rates, agent-steps/s to TensorBoard (``rollout/ep_cost_mean``, ``safety/*_rate``,
+    ``time/agent_steps_per_s``); a console line every ``every`` agent-steps. ``totals`` counts
+    the agent-steps of every violation over the whole call (for args.json)."""
+
+    def __init__(self, every: int = 10_000, echo: Callable[[str], None] | None = print) -> None:
+        super().__init__()
+        self.every, self.echo = every, echo
+        self.totals = dict.fromkeys(COUNTS, 0)
+        self.extra: dict[str, Callable[[], float]] = {}
+        """Further numbers for the log, read at each rollout's end (e.g. the multiplier)."""
+        self._last_echo = 0
+
+    def _on_training_start(self) -> None:
+        self._last_echo = self.num_timesteps
+        self._on_rollout_start()
+
+    def _on_rollout_start(self) -> None:
+        self.counts = dict.fromkeys(COUNTS, 0)
+        self.returns: list[float] = []
+        self.costs: list[float] = []
+        self.t0, self.steps0 = time.perf_counter(), self.num_timesteps
+
+    def _on_step(self) -> bool:
+        for info in self.locals["infos"]:
+            episode = info.get("episode")
+            if episode is not None:
+                self.returns.append(float(episode["r"]))
+                self.costs.append(float(episode.get("c", np.nan)))
+            v = info.get("violations")
+            if v is None:  # absorbing row of a finished agent
+                continue
+            self.counts["agent_steps"] += 1
+            for k in VIOLATIONS:
+                self.counts[k] += bool(v[k])
+            self.counts["shield_active"] += bool(info.get("shield", {}).get("active", False))
+        return True
+
+    def _on_rollout_end(self) -> None:
+        row = self.row()
+        for k in COUNTS:
+            self.totals[k] += self.counts[k]
+        for key, value in row.items():
+            if key != "agent_steps" and np.isfinite(value):
+                self.logger.record(_TB_NAMES.get(key, key), value)
+        if self.echo is not None and self.num_timesteps - self._last_echo >= self.every:
+            self._last_echo = self.num_timesteps
+            self.echo(format_row(row))
+        self._on_rollout_start()
+
+    def _on_training_end(self) -> None:
+        if self.counts["agent_steps"]:  # a rollout that StopAtTimesteps cut short
+            for k in COUNTS:
+                self.totals[k] += self.counts[k]
+        if self.echo is not None and self.num_timesteps != self._last_echo:
+            self.echo(format_row(self.row()))
+
+    def row(self) -> dict[str, float]:
+        """This rollout's numbers (NaN where no episode ended)."""
+        steps = max(self.counts["agent_steps"], 1)
+        seconds = max(time.perf_counter() - self.t0, 1e-9)
+        row = {
+            "agent_steps": float(self.num_timesteps),
+            "ep_return": float(np.mean(self.returns)) if self.returns else np.nan,
+            "ep_cost": float(np.nanmean(self.costs)) if self.costs else np.nan,
+            **{f"{k}_rate": self.counts[k] / steps for k in VIOLATIONS},
+            "shield_rate": self.counts["shield_active"] / steps,
+            "agent_steps_per_s": (self.num_timesteps - self.steps0) / seconds,
+        }
+        row.update({k: float(f()) for k, f in self.extra.items()})
+        return row
+
+
+_TB_NAMES = {
+    "ep_return": "rollout/ep_agent_return_mean",
+    "ep_cost": "rollout/ep_cost_mean",
+    "collision_rate": "safety/collision_rate",
+    "disconnection_rate": "safety/disconnection_rate",
+    "occlusion_rate": "safety/occlusion_rate",
+    "shield_rate": "safety/shield_intervention_rate",
+    "agent_steps_per_s": "time/agent_steps_per_s",
+    "lambda": "lagrangian/lambda",
+}
+
+
+def format_row(row: dict[str, float]) -> str:
+    """One console line of the learning curve ('-' where no episode ended in the rollout)."""
+
+    def num(x: float, spec: str) -> str:
+        return format(x, spec) if np.isfinite(x) else "-"
+
+    rates = " ".join(f"{k[:4]} {1000 * row[f'{k}_rate']:.2f}" for k in VIOLATIONS)
+    text = (
+        f"{row['agent_steps']:>10,.0f} steps | return {num(row['ep_return'], '.2f')} "
+        f"| cost {num(row['ep_cost'], '.2f')} | violations/1k steps: {rates} "
+        f"| shield {100 * row['shield_rate']:.0f} %"
+    )
+    if "lambda" in row:
+        text += f" | lambda {row['lambda']:.3f}"
+    return text + f" | {row['agent_steps_per_s']:,.0f} steps/s"
+
+
+def progress_callback(enabled: bool) -> tuple[BaseCallback | None, bool]:
+    """SB3's rich progress bar if rich is installed, else a tqdm callback (None if disabled);
+    the flag says whether to pass ``progress_bar=True`` to ``learn``."""
+    if not enabled:
+        return None, False
+    try:
+        import rich  # noqa: F401
+
+        return None, True
+    except ImportError:
+        pass
+    from tqdm import tqdm
+
+    class TqdmCallback(BaseCallback):
+        def _on_training_start(self) -> None:
+            total = self.locals["total_timesteps"]
+            self.bar = tqdm(total=total, initial=self.model.num_timesteps, unit="step")
+
+        def _on_step(self) -> bool:
+            self.bar.update(self.model.num_timesteps - self.bar.n)
+            return True
+
+        def _on_training_end(self) -> None:
+            self.bar.close()
+
+    return TqdmCallback(), False

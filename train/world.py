@@ -1,0 +1,88 @@
+"""The training world of both trainers (`train.ppo` and `train.rllib_ppo`).
+
+One definition, so that SB3 and RLlib optimise the same problem and their per-agent returns
+compare: seeded random worlds, UAVs started off formation (Table VI's second rows are the
+hard case), and the env's RL defaults for the reward and for what a collision ends.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+from dataclasses import dataclass, field
+from typing import Any
+
+from uavtrack_env.config import EnvConfig, RewardConfig
+
+_ENV = EnvConfig()
+_REWARD = RewardConfig()
+
+
+@dataclass(frozen=True)
+class TrainingWorld:
+    """The env settings a trainer varies; every other `EnvConfig` field keeps its default."""
+
+    n_uavs: int = field(default=3, metadata={"help": "UAVs per random world"})
+    max_cycles: int = field(
+        default=1200, metadata={"help": "training episode length (80 Hz steps; 1200 = 15 s)"}
+    )
+    dynamics: str = field(
+        default="integrator",
+        metadata={"help": "'integrator' (eq. 3, the shield exact) or 'lag'"},
+    )
+    terminate_on_collision: str = field(
+        default=_ENV.terminate_on_collision,
+        metadata={"help": "what a collision ends: 'agent', 'all' or 'never' (only cost)"},
+    )
+    reward_shape: str = field(
+        default=_REWARD.shape,
+        metadata={"help": "'exp' (r = exp(-c) in (0, 1]: crashing never pays) or 'cost' (-c)"},
+    )
+    collision_penalty: float = field(
+        default=_REWARD.collision_penalty,
+        metadata={"help": "reward subtracted on each step a UAV is in collision"},
+    )
+    start_offset: float = field(
+        default=3.0, metadata={"help": "UAV start offset from formation, per axis (m)"}
+    )
+    start_heading_offset: float = field(
+        default=0.3, metadata={"help": "start heading offset from facing the car (rad)"}
+    )
+
+    def env_kwargs(self) -> dict[str, Any]:
+        """Keyword arguments of ``uavtrack_v0.parallel_env`` (checked by `EnvConfig`)."""
+        kwargs = {
+            "scenario": "random",
+            "n_uavs": self.n_uavs,
+            "max_cycles": self.max_cycles,
+            "terminate_on_collision": self.terminate_on_collision,
+            "dynamics": {"model": self.dynamics},
+            "reward": {"shape": self.reward_shape, "collision_penalty": self.collision_penalty},
+            "random_world": {
+                "start_offset": self.start_offset,
+                "start_heading_offset": self.start_heading_offset,
+            },
+        }
+        EnvConfig.from_kwargs(**kwargs)  # a bad value fails here, naming the field
+        return kwargs
+
+    @classmethod
+    def from_fields(cls, source: Any) -> TrainingWorld:
+        """The world of any object (argparse namespace, dataclass) with these attributes."""
+        return cls(**{f.name: getattr(source, f.name) for f in dataclasses.fields(cls)})
+
+
+WORLD_FIELDS = tuple(f.name for f in dataclasses.fields(TrainingWorld))
+"""The names of `TrainingWorld`'s fields (also the trainers' option names, dashed)."""
+
+
+def add_world_arguments(parser: argparse.ArgumentParser) -> None:
+    """``--n-uavs``, ``--max-cycles``, ... on a parser, with `TrainingWorld`'s defaults."""
+    for f in dataclasses.fields(TrainingWorld):
+        kind = {"int": int, "float": float}.get(str(f.type), str)
+        parser.add_argument(
+            "--" + f.name.replace("_", "-"),
+            type=kind,
+            default=f.default,
+            help=f"{f.metadata['help']} (default: {f.default})",
+        )
