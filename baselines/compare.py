@@ -7,8 +7,9 @@ Prints and writes DIR/compare.md (one row per policy and world group: RMS pixel 
 collisions, disconnection and occluded steps, shield intervention rate), DIR/details.md (per UAV,
 in the form of Table VI), DIR/config.json and DIR/metrics.json (every episode in the schema of
 `uavtrack_env.runner.run_episode`). The expert and the shield use ``--preset`` (default 'tuned')
-with ``--set`` overrides. The PPO runs are read from the output directories of ``python -m
-train.ppo``; a run trained with ``--shield`` is evaluated shielded. Episodes use evaluate's world
+with ``--set`` overrides. The learned policies are read from the output directories of ``python -m
+train.ppo`` (``--ppo``, ``--ppo-shield``, ``--run``) or ``python -m train.rllib_ppo``
+(``--run``); a run trained shielded is evaluated shielded. Episodes use evaluate's world
 (detector noise on; ``--dynamics`` defaults to the paper's single integrator, eq. (3), under
 which the shield's guarantees hold).
 """
@@ -79,6 +80,28 @@ def load_run(run_dir: Path, cloned: bool = False) -> tuple[SB3Policy, dict]:
             normalizer = pickle.load(f)
         normalizer.training = False
     return SB3Policy(PPO.load(model_path, device="cpu"), normalizer), args
+
+
+def load_any_run(run_dir: Path) -> tuple[str, bool, Policy]:
+    """(label, shielded, policy) of a ``train.ppo`` or ``train.rllib_ppo`` output directory."""
+    run_dir = Path(run_dir)
+    if (run_dir / "model.zip").exists():
+        from train.ppo import policy_label
+
+        policy, run_args = load_run(run_dir)
+        shielded = bool(run_args["shield"])
+        lagrangian = bool(run_args.get("lagrangian", False))
+        label = policy_label(shielded, lagrangian)
+        return label, shielded, policy
+    if (run_dir / "checkpoint").is_dir():
+        from train import rllib_ppo
+
+        policy, record = rllib_ppo.load_run(run_dir)
+        shielded = bool(record["rllib"]["shield"])
+        return ("RLlib PPO + shield" if shielded else "RLlib PPO"), shielded, policy
+    raise ValueError(
+        f"{run_dir} is neither a train.ppo run (model.zip) nor a train.rllib_ppo run (checkpoint/)"
+    )
 
 
 # ------------------------------------------------------------------- episode
@@ -182,6 +205,14 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     ap.add_argument("--ppo", type=Path, help="train.ppo output directory (unshielded run)")
     ap.add_argument("--ppo-shield", type=Path, help="train.ppo output directory (shielded run)")
     ap.add_argument(
+        "--run",
+        type=Path,
+        action="append",
+        default=[],
+        help="a train.ppo or train.rllib_ppo output directory (repeatable); evaluated shielded "
+        "if it trained shielded, named by its settings (PPO, PPO-Lagrangian, RLlib PPO)",
+    )
+    ap.add_argument(
         "--cloned", type=Path, help="a train.ppo run with --bc-episodes: its cloned policy"
     )
     ap.add_argument(
@@ -255,13 +286,16 @@ def _entrants(
         if run_dir is not None:
             policy, run_args = load_run(run_dir)
             entrants.append((label, bool(run_args["shield"]), lambda env, p=policy: p))
+    for run_dir in args.run:
+        label, shielded, policy = load_any_run(run_dir)
+        entrants.append((label, shielded, lambda env, p=policy: p))
     if args.cloned is not None:
         policy, run_args = load_run(args.cloned, cloned=True)
         label = "cloned + shield" if run_args["shield"] else "cloned"
         entrants.append((label, bool(run_args["shield"]), lambda env, p=policy: p))
     if not entrants:
         raise SystemExit(
-            "nothing to compare: give --ppo, --ppo-shield or --cloned (or drop --no-expert)"
+            "nothing to compare: give --ppo, --ppo-shield, --run or --cloned (or drop --no-expert)"
         )
     return entrants
 
@@ -301,6 +335,8 @@ def _header(args: argparse.Namespace) -> str:
         if run_dir is not None:
             info = json.loads((Path(run_dir) / "args.json").read_text())
             budget.append(f"{label}: {info.get('num_timesteps', '?')} agent-steps ({run_dir})")
+    for run_dir in args.run:
+        budget.append(f"{_budget(Path(run_dir))} ({run_dir})")
     if args.cloned is not None:
         info = json.loads((Path(args.cloned) / "args.json").read_text())
         budget.append(
@@ -311,6 +347,15 @@ def _header(args: argparse.Namespace) -> str:
         f"Episodes of {args.duration:g} s, dynamics {args.dynamics}; random worlds: "
         f"{args.seeds} seeds.\n" + "".join(f"- {b}\n" for b in budget)
     )
+
+
+def _budget(run_dir: Path) -> str:
+    """A run's training budget for compare.md's header."""
+    if (run_dir / "args.json").exists():
+        info = json.loads((run_dir / "args.json").read_text())
+        return f"{info.get('num_timesteps', '?')} agent-steps"
+    record = json.loads((run_dir / "config.json").read_text())
+    return f"RLlib, {record.get('iterations', '?')} iterations"
 
 
 if __name__ == "__main__":

@@ -20,7 +20,7 @@ def _block_after(heading: str) -> str:
 @pytest.mark.slow
 def test_quick_start_flies_a_random_episode_to_its_end_with_the_shield():
     scope: dict = {}
-    exec(compile(_block_after("## The environment"), "README.md", "exec"), scope)  # noqa: S102
+    exec(compile(_block_after("## The environment"), "README.md", "exec"), scope)
     env, term, trunc = scope["env"], scope["term"], scope["trunc"]
     raw = env.unwrapped
     assert raw.num_cycles == raw.max_cycles == 4800

@@ -220,3 +220,17 @@ def test_tiny_training_writes_checkpoint(local_ray, tmp_path, shield, monkeypatc
         rllib_ppo.load_policy(tmp_path)
     monkeypatch.chdir(Path(checkpoint).parent)  # a relative path loads too
     assert rllib_ppo.load_policy(Path(checkpoint).name) is not None
+
+    # baselines.compare evaluates the run like an SB3 one, with the saved observation filter
+    from baselines import compare
+
+    policy, _ = rllib_ppo.load_run(tmp_path)
+    stats = policy.filters["uav_0"].running_stats
+    assert stats.n >= batch // 3 and np.any(stats.std != 1.0)  # statistics, not defaults
+    np.testing.assert_allclose(policy.filters["uav_0"](stats.mean, update=False), 0.0, atol=1e-5)
+    tiny = ["--scenarios", "--seeds", "1", "--duration", "0.1", "--no-progress"]
+    tiny += ["--out", str(tmp_path / "cmp")]
+    runs = compare.main(["--no-expert", "--run", str(tmp_path), *tiny])
+    label = "RLlib PPO + shield" if shield else "RLlib PPO"
+    assert [m["policy"] for m in runs] == [label]
+    assert (runs[0]["shield_intervention_rate"] is not None) is shield

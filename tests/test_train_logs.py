@@ -102,3 +102,12 @@ def test_exact_budget_lagrangian_log_and_resume(tmp_path, capsys):
     assert [c["from_timesteps"] for c in again["calls"]] == [0, 504]
     counted = [c["training_violations"]["agent_steps"] for c in again["calls"]]
     assert again["training_violations"]["agent_steps"] == sum(counted) > 0
+    # baselines.compare names the run by its settings
+    from baselines import compare
+
+    tiny = ["--scenarios", "--seeds", "1", "--duration", "0.1", "--no-progress"]
+    runs = compare.main(["--no-expert", "--run", str(out), *tiny, "--out", str(tmp_path / "c")])
+    assert [m["policy"] for m in runs] == ["PPO-Lagrangian"]
+    assert runs[0]["shield_intervention_rate"] is None
+    with pytest.raises(ValueError, match=r"neither a train\.ppo run"):
+        compare.load_any_run(tmp_path)

@@ -566,10 +566,10 @@ def command_line(args: Args) -> list[str]:
     return argv
 
 
-def policy_label(args: Args) -> str:
-    """The run's name in tables: PPO or PPO-Lagrangian, with '+ shield' if shielded."""
-    name = "PPO-Lagrangian" if args.lagrangian else "PPO"
-    return f"{name} + shield" if args.shield else name
+def policy_label(shield: bool, lagrangian: bool) -> str:
+    """A run's name in tables: PPO or PPO-Lagrangian, with '+ shield' if shielded."""
+    name = "PPO-Lagrangian" if lagrangian else "PPO"
+    return f"{name} + shield" if shield else name
 
 
 def evaluate_model(model, vec, args: Args) -> list[dict]:
@@ -582,7 +582,7 @@ def evaluate_model(model, vec, args: Args) -> list[dict]:
         normalizer.training = False
     policy = SB3Policy(model, normalizer)
     steps = max(1, round(args.eval_duration / DT))
-    label = policy_label(args)
+    label = policy_label(args.shield, args.lagrangian)
     shield = expert_settings(args) if args.shield else None
     record = run_record(args)
     runs = []

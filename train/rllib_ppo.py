@@ -377,6 +377,67 @@ def load_policy(checkpoint: str | Path) -> Any:
     return RLModule.from_checkpoint(str(path))
 
 
+class RLlibPolicy:
+    """A ``train.rllib_ppo`` checkpoint as ``policy(obs, infos) -> {agent: action}``: each
+    agent's observation through its saved ``MeanStdFilter`` statistics (if the run normalised),
+    then the shared module's mean action (deterministic), clipped to [-1, 1]."""
+
+    def __init__(self, checkpoint: str | Path) -> None:
+        self.module = load_policy(checkpoint)
+        self.filters = _saved_filters(Path(checkpoint).resolve())
+
+    def __call__(self, obs: Mapping[str, np.ndarray], infos: Any) -> dict[str, np.ndarray]:
+        import torch
+
+        agents = list(obs)
+        if not agents:
+            return {}
+        rows = []
+        for a in agents:
+            x = np.asarray(obs[a], np.float32)
+            if a in self.filters:
+                x = self.filters[a](x, update=False)
+            rows.append(np.asarray(x, np.float32))
+        with torch.no_grad():
+            out = self.module.forward_inference({"obs": torch.as_tensor(np.stack(rows))})
+        mean = out["action_dist_inputs"][:, :4].numpy()
+        actions = np.clip(mean, -1.0, 1.0).astype(np.float32)
+        return dict(zip(agents, actions, strict=True))
+
+
+def _saved_filters(checkpoint: Path) -> dict[str, Any]:
+    """The per-agent observation filters of a checkpoint (empty if the run did not normalise)."""
+    import pickle
+
+    from ray.rllib.utils.filter import MeanStdFilter, RunningStat
+
+    path = checkpoint / "env_runner" / "env_to_module_connector" / "MeanStdFilter" / "state.pkl"
+    if not path.exists():
+        return {}
+    with path.open("rb") as fh:
+        state = pickle.load(fh)
+    filters = {}
+    for agent, s in state.items():
+        f = MeanStdFilter(tuple(s["shape"]), demean=s["de_mean_to_zero"], destd=s["de_std_to_one"])
+        f.clip = s["clip_by_value"]
+        (stats,) = s["running_stats"]  # one flat Box observation
+        f.running_stats = RunningStat.from_state(stats)
+        filters[agent] = f
+    return filters
+
+
+def load_run(run_dir: str | Path) -> tuple[RLlibPolicy, dict]:
+    """The policy of a ``train.rllib_ppo`` output directory and its config.json."""
+    run_dir = Path(run_dir)
+    if not (run_dir / "checkpoint").is_dir() or not (run_dir / "config.json").is_file():
+        raise ValueError(
+            f"{run_dir} is not an output directory of train.rllib_ppo "
+            "(expected checkpoint/ and config.json)"
+        )
+    record = json.loads((run_dir / "config.json").read_text())
+    return RLlibPolicy(run_dir / "checkpoint"), record
+
+
 # ---------------------------------------------------------------------- CLI
 def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     p = argparse.ArgumentParser(
