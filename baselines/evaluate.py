@@ -36,6 +36,7 @@ from uavtrack_env.presets import (
 )
 from uavtrack_env.provenance import cli_command, config_record
 from uavtrack_env.runner import Policy, run_episode
+from uavtrack_env.wrappers.video import RecordVideo
 
 from .paper_results import TABLE_VI
 
@@ -66,6 +67,12 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     )
     ap.add_argument("--out", type=Path, default=Path("runs/latest"))
     ap.add_argument("--no-figures", action="store_true")
+    ap.add_argument(
+        "--video",
+        action="store_true",
+        help="also write the episode as OUT/video-episode-0.mp4 (overview and cameras, 20 fps; "
+        "the video extra)",
+    )
     ap.add_argument("--no-progress", action="store_true", help="hide the progress bars")
     args = ap.parse_args(argv)
     if not (math.isfinite(args.duration) and args.duration > 0):
@@ -129,15 +136,20 @@ def evaluate_world(
     expert: ExpertConfig | None = None,
     preset: str | None = None,
     figures: bool = True,
+    video: bool = False,
     progress: bool = False,
     command: str | None = None,
 ) -> dict:
-    """One episode; writes config.json, metrics.json, table.md, frame.png and figures to ``out``."""
+    """One episode; writes config.json, metrics.json, table.md, frame.png and figures to ``out``
+    (and with ``video``, the episode as ``out/video-episode-0.mp4``: `RecordVideo`)."""
     expert = expert or expert_config(preset)
     steps = max(1, round(duration / DT))
+    render = figures or video
     env = uavtrack_v0.parallel_env(
-        **world_kwargs(scenario, init, steps, dynamics=dynamics, noise=noise, render=figures)
+        **world_kwargs(scenario, init, steps, dynamics=dynamics, noise=noise, render=render)
     )
+    if video:
+        env = RecordVideo(env, out, name_prefix="video")
     agent = make_policy(policy, env, expert)
     label = f"{scenario}{init}" if scenario != "random" else f"seed {seed}"
     result = run_episode(
@@ -223,6 +235,7 @@ def main(argv: list[str] | None = None) -> None:
         "expert": expert,
         "preset": args.preset,
         "figures": not args.no_figures,
+        "video": args.video,
         "progress": not args.no_progress,
         "command": cli_command("baselines.evaluate", argv),
     }

@@ -188,7 +188,10 @@ def test_tiny_training_writes_checkpoint(local_ray, tmp_path, shield, monkeypatc
         env_kwargs={"scenario": "random", "max_cycles": 20},
     )
     threads = torch.get_num_threads()
-    checkpoint, history = rllib_ppo.train(cfg, iterations=1, out=tmp_path, log=lambda _: None)
+    checkpoint, history = rllib_ppo.train(
+        cfg, iterations=1, out=tmp_path, log=lambda _: None, video_every=1, video_seconds=0.1
+    )
+    assert [p.name for p in (tmp_path / "videos").iterdir()] == ["iteration-1-episode-0.mp4"]
     assert torch.get_num_threads() == threads  # the driver's setting is restored
     assert len(history) == 1 and history[0]["iteration"] == 1
     assert history[0]["env_steps"] >= batch

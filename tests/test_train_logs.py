@@ -88,7 +88,9 @@ def test_exact_budget_lagrangian_log_and_resume(tmp_path, capsys):
         "--n-epochs", "1", "--max-cycles", "40", "--no-progress", "--log-every", "1",
     ]  # fmt: skip
     lagrangian = ["--lagrangian", "--cost-limit", "0"]
-    ppo.main([*common, *lagrangian, "--timesteps", "500", "--out", str(out)])
+    video = ["--video-every", "300", "--video-seconds", "0.1"]
+    ppo.main([*common, *lagrangian, *video, "--timesteps", "500", "--out", str(out)])
+    assert [p.name for p in (out / "videos").iterdir()] == ["step-300-episode-0.mp4"]
     saved = json.loads((out / "args.json").read_text())
     assert saved["num_timesteps"] == 504  # the first vector step (6 rows) at or past 500
     assert not (out / "metrics.json").exists()  # evaluation is opt-in

@@ -162,3 +162,21 @@ def progress_callback(enabled: bool) -> tuple[BaseCallback | None, bool]:
             self.bar.close()
 
     return TqdmCallback(), False
+
+
+class VideoEvery(BaseCallback):
+    """Every ``every`` agent-steps, a video of the current deterministic policy
+    (`train.video.record_policy`) as ``folder/step-<agent-steps>-episode-0.mp4``."""
+
+    def __init__(self, every: int, record: Callable[[BaseCallback, str], object]) -> None:
+        super().__init__()
+        self.every, self.record = every, record
+
+    def _on_training_start(self) -> None:
+        self.next = (self.num_timesteps // self.every + 1) * self.every
+
+    def _on_step(self) -> bool:
+        if self.num_timesteps >= self.next:
+            self.next += self.every
+            self.record(self, f"step-{self.num_timesteps}")
+        return True

@@ -177,6 +177,11 @@ class Args:
     log_every: int = field(
         default=10_000, metadata={"help": "agent-steps between learning-curve lines"}
     )
+    video_every: int = field(
+        default=0,
+        metadata={"help": "agent-steps between videos of the policy in DIR/videos (0: none)"},
+    )
+    video_seconds: float = field(default=10.0, metadata={"help": "length of each video (s)"})
     threads: int = field(default=1, metadata={"help": "torch CPU threads"})
     progress: bool = field(default=True, metadata={"help": "show a progress bar"})
 
@@ -225,6 +230,8 @@ def make_args(**given: Any) -> Args:
         raise ValueError("--bc-anchor needs demonstrations: set --bc-episodes")
     if set(args.eval_scenarios) - set("ABC"):
         raise ValueError(f"--eval-scenarios takes letters of 'ABC', got {args.eval_scenarios!r}")
+    if args.video_every < 0 or not args.video_seconds > 0:
+        raise ValueError("--video-every must be >= 0 and --video-seconds > 0")
     if not args.eval_duration > 0:
         raise ValueError("--eval-duration must be > 0 s")
     args.set = tuple(args.set)
@@ -336,7 +343,7 @@ def train(args: Args):
     import torch
     from stable_baselines3.common.callbacks import CheckpointCallback
 
-    from .callbacks import StopAtTimesteps, TrainingLog, progress_callback
+    from .callbacks import StopAtTimesteps, TrainingLog, VideoEvery, progress_callback
     from .lagrangian import LagrangianReward, MultiplierUpdate
 
     torch.set_num_threads(args.threads)
@@ -363,6 +370,8 @@ def train(args: Args):
         callbacks.append(MultiplierUpdate(penalty))
         log.extra["lambda"] = lambda: penalty.lam
     callbacks.append(log)
+    if args.video_every > 0:
+        callbacks.append(VideoEvery(args.video_every, _video_recorder(args, vec)))
     if args.bc_anchor > 0:
         from train import bc
 
@@ -417,6 +426,31 @@ def _previous_calls(args: Args) -> dict:
             }
         ]
     return saved
+
+
+def _video_recorder(args: Args, vec):
+    """`VideoEvery`'s action: the model's deterministic policy (observations normalised with
+    the current statistics), shielded if the run is, in DIR/videos."""
+    from stable_baselines3.common.vec_env import VecNormalize
+
+    from .video import record_policy
+
+    normalizer = vec if isinstance(vec, VecNormalize) else None
+    shield = expert_settings(args) if args.shield else None
+
+    def record(callback, name: str) -> None:
+        policy = SB3Policy(callback.model, normalizer)
+        path = record_policy(
+            policy,
+            args.out / "videos",
+            name,
+            shield=shield,
+            dynamics=args.dynamics,
+            seconds=args.video_seconds,
+        )
+        print(f"video: {path}")
+
+    return record
 
 
 def _echo(progress_bar: bool):

@@ -320,10 +320,14 @@ def train(
     log: Callable[[str], None] = print,
     preset: str | None = None,
     command: str | None = None,
+    video_every: int = 0,
+    video_seconds: float = 10.0,
 ) -> tuple[Path, list[dict[str, float]]]:
     """Run ``iterations`` PPO iterations (Ray must be initialised), save a checkpoint in ``out``.
 
     Returns the checkpoint directory and one summary per iteration (also in ``progress.jsonl``).
+    Every ``video_every`` iterations (0: never), a video of the policy so far in ``out/videos``
+    (`train.video.record_policy`, from a checkpoint in ``out/video-checkpoint``).
     """
     if iterations < 1:
         raise ValueError(f"iterations must be >= 1, got {iterations}")
@@ -347,6 +351,8 @@ def train(
                 fh.write(json.dumps(summary) + "\n")
                 fh.flush()
                 log(" ".join(f"{k}={v:.4g}" for k, v in summary.items()))
+                if video_every > 0 and len(history) % video_every == 0:
+                    log(f"video: {_video(algo, cfg, out, len(history), video_seconds)}")
         checkpoint = Path(algo.save_to_path(str(out / "checkpoint")))
     finally:
         if algo is not None:
@@ -364,6 +370,22 @@ def train(
     )
     (out / "config.json").write_text(json.dumps(record, indent=2))
     return checkpoint, history
+
+
+def _video(algo: Any, cfg: RLlibPPOConfig, out: Path, iteration: int, seconds: float) -> Path:
+    """A video of the algorithm's current policy (`RLlibPolicy` of a fresh checkpoint)."""
+    from .video import record_policy
+
+    checkpoint = Path(algo.save_to_path(str(out / "video-checkpoint")))
+    dynamics = dict(cfg.env_kwargs).get("dynamics", {}).get("model", "integrator")
+    return record_policy(
+        RLlibPolicy(checkpoint),
+        out / "videos",
+        f"iteration-{iteration}",
+        shield=cfg.expert if cfg.shield else None,
+        dynamics=dynamics,
+        seconds=seconds,
+    )
 
 
 def load_policy(checkpoint: str | Path) -> Any:
@@ -470,8 +492,18 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
         help="running mean/std observation filter",
     )
     p.add_argument("--hidden", default="128,128", help="hidden layer sizes of the shared MLP")
+    p.add_argument(
+        "--video-every",
+        type=int,
+        default=0,
+        help="iterations between videos of the policy in OUT/videos (0: none; the video extra)",
+    )
+    p.add_argument("--video-seconds", type=float, default=10.0, help="length of each video (s)")
     add_world_arguments(p)
-    return p.parse_args(argv)
+    args = p.parse_args(argv)
+    if args.video_every < 0 or not args.video_seconds > 0:
+        p.error("--video-every must be >= 0 and --video-seconds > 0")
+    return args
 
 
 def _parse_hidden(text: str) -> tuple[int, ...]:
@@ -508,7 +540,15 @@ def main(argv: Sequence[str] | None = None) -> Path:
     init_ray(args.address, num_cpus=cpus, working_dir=args.working_dir)
     try:
         command = cli_command("train.rllib_ppo", None if argv is None else list(argv))
-        checkpoint, _ = train(cfg, args.iterations, args.out, preset=args.preset, command=command)
+        checkpoint, _ = train(
+            cfg,
+            args.iterations,
+            args.out,
+            preset=args.preset,
+            command=command,
+            video_every=args.video_every,
+            video_seconds=args.video_seconds,
+        )
     finally:
         ray.shutdown()
     print(f"checkpoint: {checkpoint}")
