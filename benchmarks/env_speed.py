@@ -1,9 +1,10 @@
 """Env steps per second with random actions, random world, detector on, rendering off.
 
-    python benchmarks/env_speed.py [--steps 2000] [--repeats 5] [--n 3 10 30]
+    python benchmarks/env_speed.py [--steps 2000] [--repeats 5] [--n 3 10 30] [--vector 64]
 
 Prints, per team size, the median over repeats of steps/s, agent-steps/s and us per agent-step,
-the real-time factor at 80 Hz and the per-agent cost relative to n = 3.
+the real-time factor at 80 Hz and the per-agent cost relative to n = 3; then the same for
+``vector_env(num_envs=K)`` at n = 3 (array infos, autoreset) beside the ParallelEnv.
 """
 
 from __future__ import annotations
@@ -38,11 +39,30 @@ def steps_per_second(n: int, steps: int, seed: int) -> float:
     return steps / elapsed
 
 
+def vector_agent_steps_per_second(k: int, steps: int, seed: int) -> float:
+    """Agent-steps/s of ``vector_env(num_envs=k)`` at n = 3 (rows that took part in a step)."""
+    env = uavtrack_v0.vector_env(
+        k, scenario="random", max_cycles=MAX_EPISODE_STEPS, terminate_on_collision="agent"
+    )
+    rng = np.random.default_rng(seed)
+    env.reset(seed=seed)
+    elapsed, rows = 0.0, 0
+    for _ in range(steps):
+        actions = rng.uniform(-0.3, 0.3, env.action_space.shape).astype(np.float32)
+        t0 = time.perf_counter()
+        infos = env.step(actions)[-1]
+        elapsed += time.perf_counter() - t0
+        rows += int(infos["active"].sum())
+    env.close()
+    return rows / elapsed
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--steps", type=int, default=2000)
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--n", type=int, nargs="+", default=[3, 10, 30])
+    ap.add_argument("--vector", type=int, default=64, help="worlds of the vector_env (0: skip)")
     args = ap.parse_args()
     print(
         f"machine: {platform.processor() or platform.machine()}, python {platform.python_version()}"
@@ -60,6 +80,17 @@ def main() -> None:
         print(
             f"{n:>4} {sps:>9.0f} {sps * n:>14.0f} {per_agent:>14.1f} {sps / 80:>12.1f} "
             f"{per_agent / base:>17.2f}"
+        )
+    if args.vector:
+        k = args.vector
+        vec = statistics.median(
+            vector_agent_steps_per_second(k, max(1, args.steps // k), seed)
+            for seed in range(args.repeats)
+        )
+        par = statistics.median(3 * steps_per_second(3, args.steps, s) for s in range(args.repeats))
+        print(
+            f"vector_env(num_envs={k}), n = 3: {vec:.0f} agent-steps/s ({1e6 / vec:.1f} us per "
+            f"agent-step) vs ParallelEnv {par:.0f}: ratio {vec / par:.2f}"
         )
 
 

@@ -7,7 +7,7 @@ from . import uavtrack_v0
 from .config import EnvConfig
 from .env import UAVTrackEnv
 from .sensors import UAVSnapshot
-from .uavtrack_v0 import env, parallel_env, raw_env
+from .uavtrack_v0 import env, parallel_env, raw_env, vector_env
 
 __version__ = "0.1.0"
 __all__ = [
@@ -19,4 +19,5 @@ __all__ = [
     "parallel_env",
     "raw_env",
     "uavtrack_v0",
+    "vector_env",
 ]

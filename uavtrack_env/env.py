@@ -332,14 +332,18 @@ class UAVTrackEnv(ParallelEnv):
 
     def _step_checked(self, u: np.ndarray, clipped: np.ndarray):
         """`step` of actions `validate_actions` has checked and scaled (u, clipped)."""
-        self._simulate(u, clipped)
-        m = self._sense()
-        score = self._score(m, u)
+        m, score = self._advance(u, clipped)
         obs = self._observe(m)
         rewards = {a: float(score.reward[self._index[a]]) for a in self.agents}
         infos = self._infos(m, score, u, clipped)
         terminations, truncations = self._episode_end(score.collided)
         return obs, rewards, terminations, truncations, infos
+
+    def _advance(self, u: np.ndarray, clipped: np.ndarray) -> tuple[Measurements, Score]:
+        """simulate -> sense -> score: the step's state change and its measurements."""
+        self._simulate(u, clipped)
+        m = self._sense()
+        return m, self._score(m, u)
 
     def validate_actions(self, actions: dict[str, Any]) -> tuple[np.ndarray, np.ndarray]:
         """Check a step's actions without changing anything.
@@ -498,14 +502,19 @@ class UAVTrackEnv(ParallelEnv):
     # ---------------------------------------------------------------- observe
     def _observe(self, m: Measurements) -> dict[str, np.ndarray]:
         """Each live agent's observation vector (float32, clipped to the observation space)."""
+        obs = self._observation_array(m)
+        return {a: obs[self._index[a]] for a in self.agents}
+
+    def _observation_array(self, m: Measurements) -> np.ndarray:
+        """Every UAV's observation (n, n_obs) float32, clipped to the observation space (rows
+        of finished UAVs included)."""
         blocks = [self._own_block(m.detections)]
         if self.config.n_neighbours:
             blocks.append(self._neighbour_block(m.received, m.distances))
         if self.config.n_obstacles_obs:
             blocks.append(self._obstacle_block(m.obstacle_clearance))
         obs = np.clip(np.concatenate(blocks, 1), self._obs_low, self._obs_high)
-        obs = obs.astype(np.float32)
-        return {a: obs[self._index[a]] for a in self.agents}
+        return obs.astype(np.float32)
 
     def _own_block(self, det: Detections) -> np.ndarray:
         """OWN_FIELDS for all UAVs (n, 19): measured features, detection, own motion, s*."""
@@ -655,21 +664,28 @@ class UAVTrackEnv(ParallelEnv):
 
     # ------------------------------------------------------------ episode end
     def _episode_end(self, collided: np.ndarray):
+        live = self.agents
+        terminated, truncate = self._end_arrays(collided)
+        terminations = {a: bool(terminated[self._index[a]]) for a in live}
+        truncations = {a: truncate for a in live}
+        return terminations, truncations
+
+    def _end_arrays(self, collided: np.ndarray) -> tuple[np.ndarray, bool]:
+        """Which UAVs this step terminates (n,) and whether it truncates; updates ``alive`` and
+        ``agents`` and parks the UAVs that left."""
         cfg = self.config
         if cfg.terminate_on_collision == "never":
             collided = np.zeros_like(collided)  # charged as cost only
         elif cfg.terminate_on_collision == "all" and collided.any():
             collided = self.alive.copy()
         truncate = self.num_cycles >= self.max_cycles
-        terminations = {a: bool(collided[self._index[a]]) for a in self.agents}
-        truncations = {a: truncate for a in self.agents}
         self.alive &= ~collided
-        self.agents = [a for a in self.agents if not (terminations[a] or truncate)]
+        self.agents = [] if truncate else [a for a in self.agents if self.alive[self._index[a]]]
         if self.agents and collided.any():  # park the UAVs that just left
             self.world.set_poses(
                 self.position, self.yaw, self.alive, self.target.center(), self.target.heading
             )
-        return terminations, truncations
+        return collided, truncate
 
     # ------------------------------------------------------------ extras
     def snapshot(self) -> UAVSnapshot:

@@ -1,4 +1,5 @@
-"""PettingZoo-style versioned entry points: ``parallel_env``, ``env`` (AEC) and ``raw_env``."""
+"""PettingZoo-style versioned entry points: ``parallel_env``, ``env`` (AEC), ``raw_env`` and
+``vector_env`` (K worlds as arrays)."""
 
 from __future__ import annotations
 
@@ -8,6 +9,7 @@ from pettingzoo.utils.conversions import parallel_to_aec_wrapper
 from pettingzoo.utils.wrappers import OrderEnforcingWrapper
 
 from .env import UAVTrackEnv
+from .vector import UAVTrackVectorEnv
 
 
 def raw_env(**kwargs: Any) -> UAVTrackEnv:
@@ -34,3 +36,9 @@ class _AECEnv(parallel_to_aec_wrapper):
 def env(**kwargs: Any):
     """The AEC version, as PettingZoo's ``parallel_to_aec`` builds it (order enforced)."""
     return OrderEnforcingWrapper(_AECEnv(UAVTrackEnv(**kwargs)))
+
+
+def vector_env(num_envs: int, full_infos: bool = False, **kwargs: Any) -> UAVTrackVectorEnv:
+    """K = ``num_envs`` worlds of the same ``EnvConfig`` stepped as arrays (K, n, ...), world k
+    seeded s + k, autoreset (`uavtrack_env.vector`)."""
+    return UAVTrackVectorEnv(num_envs, full_infos=full_infos, **kwargs)

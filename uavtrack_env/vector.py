@@ -1,0 +1,221 @@
+"""``vector_env``: K worlds of n UAVs stepped as arrays, for RL that wants samples.
+
+``env = uavtrack_v0.vector_env(num_envs=K, **config)``; every world has the same `EnvConfig`
+(``**config``, as for ``parallel_env``) and its own seed:
+
+* ``reset(seed=s) -> (obs, infos)``: world k is reset with seed s + k (None: fresh entropy).
+* ``step(actions) -> (obs, rewards, terminations, truncations, infos)``: actions (K, n, 4) in
+  [-1, 1] (finite values beyond are clipped, as in the ParallelEnv); obs (K, n, n_obs) float32,
+  rewards (K, n) float32, terminations and truncations (K, n) bool.
+
+Row (k, i) is agent ``possible_agents[i]`` of world k. A UAV that has left its episode while its
+world goes on (``terminate_on_collision="agent"``) is *inactive*: its action is ignored (any
+value, NaN included), its observation and reward are 0, ``infos["active"][k, i]`` is False.
+Terminations and truncations are True on the step an agent's episode ends.
+
+**Autoreset** (Gymnasium's ``AutoresetMode.SAME_STEP``): when the last agent of world k has
+ended, world k resets within the same ``step`` (seeded from its own stream, so a seeded run is
+reproducible) and ``obs[k]`` is its first observation; the last one is in
+``infos["final_obs"][k]`` with ``infos["_final_obs"][k]`` True.
+
+**Infos** are arrays (K, n) about this step's transition, like the rewards (for a world that
+ended, its last step): ``cost`` (the sum of ``costs``), ``costs`` = {collision, disconnection,
+occlusion} as 0/1 floats, ``reward_tracking``, ``reward_effort``, ``action_clipped`` and
+``active`` (the row took part in the step). ``full_infos=True`` adds ``infos["agents"]``: each
+world's ParallelEnv info dicts of the step, and for a world that reset, its reset infos in
+``infos["reset_infos"][k]`` (slower: it builds every nested dict).
+
+World k behaves exactly as ``parallel_env(**config)`` reset with seed s + k and given the same
+actions: same observations, rewards, terminations and infos (tested).
+"""
+
+from __future__ import annotations
+
+from typing import Any, ClassVar
+
+import gymnasium
+import numpy as np
+from gymnasium.vector import AutoresetMode
+
+from .env import UAVTrackEnv
+
+VIOLATIONS = ("collision", "disconnection", "occlusion")
+
+
+class UAVTrackVectorEnv:
+    """K `UAVTrackEnv` worlds stepped together as arrays (module docstring)."""
+
+    metadata: ClassVar[dict[str, Any]] = {"autoreset_mode": AutoresetMode.SAME_STEP}
+
+    def __init__(self, num_envs: int, full_infos: bool = False, **config: Any) -> None:
+        if isinstance(num_envs, bool) or not isinstance(num_envs, int | np.integer):
+            raise TypeError(f"num_envs must be an int >= 1, got {num_envs!r}")
+        if num_envs < 1:
+            raise ValueError(f"num_envs must be >= 1, got {num_envs}")
+        if config.get("render_mode") is not None:
+            raise ValueError("vector_env does not render; use parallel_env(render_mode=...)")
+        self.num_envs = int(num_envs)
+        self.full_infos = bool(full_infos)
+        self.envs = [UAVTrackEnv(**config) for _ in range(self.num_envs)]
+        first = self.envs[0]
+        self.config = first.config
+        self.possible_agents = list(first.possible_agents)
+        self.n_agents = len(self.possible_agents)
+        self.single_observation_space = first.observation_space(self.possible_agents[0])
+        self.single_action_space = first.action_space(self.possible_agents[0])
+        shape = (self.num_envs, self.n_agents)
+        self.observation_space = gymnasium.spaces.Box(
+            np.broadcast_to(self.single_observation_space.low, (*shape, first.n_obs)),
+            np.broadcast_to(self.single_observation_space.high, (*shape, first.n_obs)),
+            dtype=np.float32,
+        )
+        self.action_space = gymnasium.spaces.Box(-1.0, 1.0, (*shape, 4), np.float32)
+        self._scale = first._scale
+        self._active = np.zeros(shape, bool)
+        self._started = False
+
+    # ------------------------------------------------------------------ reset
+    def reset(
+        self, seed: int | None = None, options: dict | None = None
+    ) -> tuple[np.ndarray, dict[str, Any]]:
+        """Reset every world; world k with seed ``seed + k``."""
+        if seed is not None and (isinstance(seed, bool) or not isinstance(seed, int | np.integer)):
+            raise TypeError(f"seed must be an int or None, got {seed!r}")
+        obs = np.zeros(self.observation_space.shape, np.float32)
+        per_world = []
+        for k in range(self.num_envs):
+            obs[k], info = self._reset_world(k, None if seed is None else int(seed) + k, options)
+            per_world.append(info)
+        self._started = True
+        return obs, self._stack(per_world)
+
+    def _reset_world(self, k: int, seed: int | None, options: dict | None):
+        env = self.envs[k]
+        obs, infos = env.reset(seed=seed, options=options)
+        self._active[k] = True
+        return np.stack([obs[a] for a in self.possible_agents]), self._reset_info(env, infos)
+
+    def _reset_info(self, env: UAVTrackEnv, infos: dict) -> dict[str, np.ndarray]:
+        rows = [infos[a] for a in self.possible_agents]
+        out = {
+            "cost": np.array([r["cost"] for r in rows]),
+            "costs": {v: np.array([r["costs"][v] for r in rows]) for v in VIOLATIONS},
+            "reward_tracking": np.array([r["reward_tracking"] for r in rows]),
+            "reward_effort": np.array([r["reward_effort"] for r in rows]),
+            "action_clipped": np.zeros(self.n_agents, bool),
+            "active": np.ones(self.n_agents, bool),
+        }
+        if self.full_infos:
+            out["agents"] = infos
+        return out
+
+    # ------------------------------------------------------------------- step
+    def step(self, actions: Any):
+        """One step of every world (module docstring); bad input raises and changes nothing."""
+        u, clipped = self._checked(actions)
+        shape = self._active.shape
+        obs = np.zeros(self.observation_space.shape, np.float32)
+        rewards = np.zeros(shape, np.float32)
+        terminations = np.zeros(shape, bool)
+        truncations = np.zeros(shape, bool)
+        per_world: list[dict[str, Any]] = []
+        final_obs = np.zeros_like(obs)
+        ended = np.zeros(self.num_envs, bool)
+        reset_infos: list[Any] = [None] * self.num_envs
+        for k, env in enumerate(self.envs):
+            active = self._active[k].copy()
+            m, score = env._advance(u[k] * active[:, None], clipped[k] & active)
+            obs[k] = env._observation_array(m) * active[:, None]
+            rewards[k] = score.reward * active
+            info = self._step_info(env, m, score, u[k], clipped[k], active)
+            terminated, truncate = env._end_arrays(score.collided)
+            terminations[k] = terminated & active
+            truncations[k] = truncate & active
+            self._active[k] = active & ~terminations[k] & ~truncations[k]
+            if not env.agents:
+                ended[k] = True
+                final_obs[k] = obs[k]
+                obs[k], reset_info = self._reset_world(k, None, None)
+                reset_infos[k] = reset_info.get("agents")
+            per_world.append(info)
+        infos = self._stack(per_world)
+        if ended.any():
+            infos["final_obs"], infos["_final_obs"] = final_obs, ended
+            if self.full_infos:
+                infos["reset_infos"] = reset_infos
+        return obs, rewards, terminations, truncations, infos
+
+    def _step_info(self, env, m, score, u, clipped, active) -> dict[str, Any]:
+        n = self.n_agents
+        collided = score.collided.astype(float)
+        disconnected = np.full(n, float(score.disconnected))
+        occluded = score.occluded.astype(float)
+        costs = {
+            "collision": collided * active,
+            "disconnection": disconnected * active,
+            "occlusion": occluded * active,
+        }
+        out = {
+            "cost": costs["collision"] + costs["disconnection"] + costs["occlusion"],
+            "costs": costs,
+            "reward_tracking": -score.tracking * active,
+            "reward_effort": -score.effort * active,
+            "action_clipped": clipped & active,
+            "active": active.copy(),
+        }
+        if self.full_infos:
+            out["agents"] = env._infos(m, score, u, clipped)
+        return out
+
+    def _stack(self, per_world: list[dict[str, Any]]) -> dict[str, Any]:
+        """World-major arrays (K, n) from each world's (n,) arrays."""
+        out: dict[str, Any] = {}
+        for key, value in per_world[0].items():
+            if key == "agents":
+                out[key] = [w[key] for w in per_world]
+            elif isinstance(value, dict):
+                out[key] = {v: np.stack([w[key][v] for w in per_world]) for v in value}
+            else:
+                out[key] = np.stack([w[key] for w in per_world])
+        return out
+
+    def _checked(self, actions: Any) -> tuple[np.ndarray, np.ndarray]:
+        """(u (K, n, 4) in SI units, clipped (K, n)) of valid actions; raises otherwise."""
+        if not self._started:
+            raise RuntimeError("step() called before reset(); call env.reset(seed=...) first")
+        try:
+            a = np.asarray(actions, dtype=np.float64)
+        except (TypeError, ValueError) as exc:
+            raise ValueError(
+                f"actions must be a float array of shape {self.action_space.shape} "
+                f"(worlds, agents, 4), got {type(actions).__name__}"
+            ) from exc
+        if a.shape != self.action_space.shape:
+            raise ValueError(
+                f"actions have shape {a.shape}; expected {self.action_space.shape} = (num_envs, "
+                "n_uavs, 4) of [v_cx, v_cy, v_cz, omega_cy] normalised to [-1, 1]"
+            )
+        a = np.where(self._active[..., None], a, 0.0)  # inactive rows: ignored
+        bad = ~np.isfinite(a).all(axis=-1)
+        if bad.any():
+            k, i = (int(x) for x in np.argwhere(bad)[0])
+            raise ValueError(
+                f"action of world {k}, agent {self.possible_agents[i]!r} is not finite: "
+                f"{a[k, i].tolist()}"
+            )
+        clipped = np.any(np.abs(a) > 1.0, axis=-1)
+        return np.clip(a, -1.0, 1.0) * self._scale, clipped
+
+    # ----------------------------------------------------------------- extras
+    def close(self) -> None:
+        for env in self.envs:
+            env.close()
+
+    def __enter__(self) -> UAVTrackVectorEnv:
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.close()
+
+    def __reduce_ex__(self, protocol):
+        return self.envs[0].__reduce_ex__(protocol)  # refuses: the worlds own live clients
