@@ -583,10 +583,19 @@ class UAVTrackEnv(ParallelEnv):
         self, m: Measurements, score: Score, u: np.ndarray, clipped: np.ndarray
     ) -> dict[str, dict]:
         """Each live agent's info dict: cost, violations, reward terms, measurement, truth."""
-        return {a: self._agent_info(self._index[a], m, score, u, clipped) for a in self.agents}
+        truths = self._truths(m)
+        return {
+            a: self._agent_info(self._index[a], m, score, u, clipped, truths) for a in self.agents
+        }
 
     def _agent_info(
-        self, i: int, m: Measurements, score: Score, u: np.ndarray, clipped: np.ndarray
+        self,
+        i: int,
+        m: Measurements,
+        score: Score,
+        u: np.ndarray,
+        clipped: np.ndarray,
+        truths: dict[str, Any],
     ) -> dict:
         violations = {
             "collision": bool(score.collided[i]),
@@ -619,7 +628,7 @@ class UAVTrackEnv(ParallelEnv):
                 for j in np.flatnonzero(m.received[i])
             },
             "reference": self.references[i].copy(),
-            "truth": self._truth(i, m),
+            "truth": self._truth(i, m, truths),
         }
 
     @staticmethod
@@ -637,28 +646,42 @@ class UAVTrackEnv(ParallelEnv):
             "truncated_v": ok and bool(det.truncated[i, 1]),
         }
 
-    def _truth(self, i: int, m: Measurements) -> dict:
-        """Ground truth for UAV i: true features and errors, the car's motion, clearances."""
+    def _truths(self, m: Measurements) -> dict[str, Any]:
+        """The parts of every UAV's ground truth computed for the whole team at once."""
         cam, det = self.config.camera, m.detections
+        s, ref = det.true_features, self.references
+        ref_px = np.column_stack([cam.fx * ref[:, 0] + cam.cu, cam.fy * ref[:, 1] + cam.cv])
+        center_px = np.column_stack([cam.fx * s[:, 0] + cam.cu, cam.fy * s[:, 1] + cam.cv])
+        theta = m.occlusion_angles
+        return {
+            # Capped at the image size: a car behind the camera projects arbitrarily far.
+            "pixel_error": np.clip(det.box_center - ref_px, -self._image_size, self._image_size),
+            "center_pixel_error": center_px - ref_px,
+            "min_occlusion_angle": np.where(m.occlusion_candidates, theta, np.pi).min(
+                axis=1, initial=np.pi
+            ),
+            "target": (self.target.center(), self.target.velocity(), self.target.acceleration()),
+        }
+
+    def _truth(self, i: int, m: Measurements, truths: dict[str, Any]) -> dict:
+        """Ground truth for UAV i: true features and errors, the car's motion, clearances."""
+        det = m.detections
         s, ref = det.true_features[i], self.references[i]
-        ref_px = np.array([cam.fx * ref[0] + cam.cu, cam.fy * ref[1] + cam.cv])
-        center_error = np.array([cam.fx * s[0] + cam.cu, cam.fy * s[1] + cam.cv]) - ref_px
-        theta, in_noi = m.occlusion_angles[i], m.occlusion_candidates[i]
+        position, velocity, acceleration = truths["target"]
         return {
             "features": s.copy(),
-            # Capped at the image size: a car behind the camera projects arbitrarily far.
-            "pixel_error": np.clip(det.box_center[i] - ref_px, -self._image_size, self._image_size),
-            "center_pixel_error": center_error,
+            "pixel_error": truths["pixel_error"][i],
+            "center_pixel_error": truths["center_pixel_error"][i],
             "depth_error": float(1.0 / s[2] - 1.0 / ref[2]) if det.in_front[i] else None,
-            "target_position": self.target.center(),
-            "target_velocity": self.target.velocity(),
-            "target_acceleration": self.target.acceleration(),
+            "target_position": position.copy(),
+            "target_velocity": velocity.copy(),
+            "target_acceleration": acceleration.copy(),
             "nearest_uav_distance": _finite(m.nearest_uav[i]),
             "nearest_obstacle_clearance": _finite(m.nearest_obstacle[i]),
             "target_clearance": float(m.target_clearance[i]),
-            "occlusion_angles": theta.copy(),
-            "occlusion_candidates": in_noi.copy(),
-            "min_occlusion_angle": float(theta[in_noi].min()) if in_noi.any() else np.pi,
+            "occlusion_angles": m.occlusion_angles[i].copy(),
+            "occlusion_candidates": m.occlusion_candidates[i].copy(),
+            "min_occlusion_angle": float(truths["min_occlusion_angle"][i]),
             "blocked_fraction": float(det.blocked_fraction[i]),
         }
 
