@@ -18,12 +18,21 @@ dynamics `feature_rates` also work with CasADi symbols.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
+
+_SCALARS = (float, int, np.floating, np.integer)
 
 
 def wrap_angle(a):
     """Wrap angles to (-pi, pi]."""
     return np.pi - np.mod(np.pi - np.asarray(a, dtype=float), 2.0 * np.pi)
+
+
+def wrap_scalar(a: float) -> float:
+    """`wrap_angle` of one real number (the same value, without numpy's dispatch)."""
+    return math.pi - (math.pi - a) % (2.0 * math.pi)
 
 
 def cam_to_world(yaw) -> np.ndarray:
@@ -35,13 +44,23 @@ def cam_to_world(yaw) -> np.ndarray:
     return np.stack(cols, -1)
 
 
+def _one_vector(v, yaw) -> bool:
+    """A real scalar yaw and one float64 3-vector (the rotations' fast path)."""
+    return (
+        isinstance(yaw, _SCALARS)
+        and isinstance(v, np.ndarray)
+        and v.shape == (3,)
+        and v.dtype == np.float64
+    )
+
+
 def world_to_cam_vec(v_world: np.ndarray, yaw) -> np.ndarray:
     """Express global vectors (..., 3) in the camera frame of a UAV with this yaw."""
-    if np.ndim(yaw) == 0 and np.ndim(v_world) == 1:  # one vector: no broadcasting machinery
-        c, s = float(np.cos(float(yaw))), float(np.sin(float(yaw)))
-        x, y, z = (float(e) for e in v_world)
+    if _one_vector(v_world, yaw):  # no broadcasting machinery
+        c, s = math.cos(yaw), math.sin(yaw)
+        x, y, z = v_world.tolist()
         return np.array((s * x - c * y, -z, c * x + s * y))
-    yaw = np.asarray(yaw, dtype=float)[..., None]
+    v_world, yaw = np.asarray(v_world, dtype=float), np.asarray(yaw, dtype=float)[..., None]
     c, s = np.cos(yaw), np.sin(yaw)
     x, y, z = v_world[..., 0:1], v_world[..., 1:2], v_world[..., 2:3]
     return np.concatenate([s * x - c * y, -z, c * x + s * y], -1)
@@ -49,11 +68,11 @@ def world_to_cam_vec(v_world: np.ndarray, yaw) -> np.ndarray:
 
 def cam_to_world_vec(v_cam: np.ndarray, yaw) -> np.ndarray:
     """Express camera-frame vectors (..., 3) in the global frame."""
-    if np.ndim(yaw) == 0 and np.ndim(v_cam) == 1:  # one vector: no broadcasting machinery
-        c, s = float(np.cos(float(yaw))), float(np.sin(float(yaw)))
-        X, Y, Z = (float(e) for e in v_cam)
+    if _one_vector(v_cam, yaw):  # no broadcasting machinery
+        c, s = math.cos(yaw), math.sin(yaw)
+        X, Y, Z = v_cam.tolist()
         return np.array((s * X + c * Z, -c * X + s * Z, -Y))
-    yaw = np.asarray(yaw, dtype=float)[..., None]
+    v_cam, yaw = np.asarray(v_cam, dtype=float), np.asarray(yaw, dtype=float)[..., None]
     c, s = np.cos(yaw), np.sin(yaw)
     X, Y, Z = v_cam[..., 0:1], v_cam[..., 1:2], v_cam[..., 2:3]
     return np.concatenate([s * X + c * Z, -c * X + s * Z, -Y], -1)

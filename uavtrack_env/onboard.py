@@ -60,7 +60,7 @@ def update_trackers(trackers: Sequence[OnboardTracker], infos: Sequence[dict]) -
         pos, yaw = own["position"], own["yaw"]
         meas = None
         if m["detected"]:
-            meas = Measurement(
+            meas = Measurement.trusted(
                 m["u"], m["v"], m["depth"], m["psi"], m["truncated_u"], m["truncated_v"]
             )
         if tracker.estimate is None:
@@ -93,6 +93,8 @@ class NeighbourBelief:
     """(k,) the true velocity lies within this distance (m/s) of ``velocities``."""
     ages: np.ndarray
     """(k,) control steps since each team-mate's last message (0: heard this step)."""
+    ids: tuple[int, ...]
+    """Their indices in the team."""
 
 
 class NeighbourTable:
@@ -120,6 +122,7 @@ class NeighbourTable:
         self.speed_bound, self.accel_bound = float(speed_bound), accel_bound
         self.timeout, self.dt = int(timeout), dt
         self._names: list[str] = []
+        self._ids: list[int] = []
         self._index: dict[str, int] = {}
         self._pos = np.zeros((0, 3))
         self._vel = np.zeros((0, 3))
@@ -133,6 +136,7 @@ class NeighbourTable:
         me = names.index(own)
         keep = [k for k in range(len(names)) if k != me]
         self._names = [names[k] for k in keep]
+        self._ids = keep
         self._index = {a: k for k, a in enumerate(self._names)}
         self._pos = positions[keep].copy()
         self._vel = np.zeros_like(self._pos)
@@ -161,10 +165,12 @@ class NeighbourTable:
             k, self._pos, self._vel, self._vel_err, self._age, self.dt, self.speed_bound,
             -1.0 if self.accel_bound is None else self.accel_bound,
         )  # fmt: skip
-        names = self._names
+        names, ids = self._names, self._ids
+        known = k.tolist()
         return NeighbourBelief(
-            tuple(names[i] for i in k.tolist()), pos, vel, radius, vel_radius, self._age[k]
-        )
+            tuple([names[i] for i in known]), pos, vel, radius, vel_radius, self._age[k],
+            tuple([ids[i] for i in known]),
+        )  # fmt: skip
 
 
 _NO_POSITIONS = np.zeros((0, 3))
@@ -272,7 +278,6 @@ class OnboardAgent:
         """Detections since the last box cut by the image border in u and in v."""
         self._cut_steps = [0, 0]
         """Steps since each axis's spell of cut boxes began (0: none)."""
-        self._ids: dict[str, int] = {}
         self.obstacle_centers = np.zeros((0, 3))
         self.obstacle_half_extents = np.zeros((0, 3))
         self.info: dict | None = None
@@ -290,7 +295,6 @@ class OnboardAgent:
         index order. Forgets the estimate and the neighbours' histories."""
         self.obstacle_centers = np.asarray(layout.obstacle_centers, float).reshape(-1, 3)
         self.obstacle_half_extents = np.asarray(layout.obstacle_half_extents, float).reshape(-1, 3)
-        self._ids = {a: i for i, a in enumerate(agents)}
         self.tracker.reset()
         self._uncut = [self._recovery] * 2
         self._cut_steps = [0, 0]
@@ -306,14 +310,11 @@ class OnboardAgent:
         """The messages, the cut-box spells and the safety context of ``info`` (the tracker has
         taken it)."""
         m, full = info["measurement"], self._recovery
-        if m["detected"]:
-            cut = (m["truncated_u"], m["truncated_v"])
-            self._uncut = [
-                0 if c else min(n + 1, full) for c, n in zip(cut, self._uncut, strict=True)
-            ]
-        self._cut_steps = [
-            s + 1 if n < full else 0 for s, n in zip(self._cut_steps, self._uncut, strict=True)
-        ]
+        uncut, steps = self._uncut, self._cut_steps
+        for axis, key in enumerate(("truncated_u", "truncated_v")):
+            if m["detected"]:
+                uncut[axis] = 0 if m[key] else min(uncut[axis] + 1, full)
+            steps[axis] = steps[axis] + 1 if uncut[axis] < full else 0
         self.neighbours.update(info["neighbours"])
         self.belief = self.neighbours.belief()
         self.info, self._rows = info, None
@@ -371,7 +372,7 @@ class OnboardAgent:
             neighbour_velocity_radius=belief.velocity_radius if self._lag else None,
             obstacle_centers=self.obstacle_centers,
             obstacle_half_extents=self.obstacle_half_extents,
-            neighbour_ids=tuple(self._ids[a] for a in belief.names),
+            neighbour_ids=belief.ids,
             **target,
         )
 

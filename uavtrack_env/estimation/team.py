@@ -12,8 +12,8 @@ height, the clock) is shared with the single-UAV path through
 
 from __future__ import annotations
 
-import functools
 import math
+import weakref
 from collections.abc import Sequence
 
 import numba
@@ -241,12 +241,20 @@ def sigma_points(x: np.ndarray, P: np.ndarray, lam: float) -> np.ndarray:
     return np.stack([_sigma_points(xk, Pk, float(lam)) for xk, Pk in zip(x, P, strict=True)])
 
 
-@functools.cache
-def _constants(cam, cfg) -> tuple[np.ndarray, np.ndarray, float]:
-    """The camera's (fx, fy, cu, cv), the x3 bounds and the x1/x2 limit, as the kernel takes
-    them (frozen configs: computed once)."""
-    cam_arr = np.array((cam.fx, cam.fy, cam.cu, cam.cv), float)
-    return cam_arr, np.asarray(cfg.x3_bounds, float), float(cfg.x12_limit)
+_CONSTANTS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
+def _constants(est: TargetEstimator) -> tuple[float, np.ndarray, np.ndarray, float]:
+    """Merwe's lambda, the camera's (fx, fy, cu, cv), the x3 bounds and the x1/x2 limit of an
+    estimator, as the kernel takes them (its configs are frozen: computed once)."""
+    out = _CONSTANTS.get(est)
+    if out is None:
+        cam, cfg, points = est.camera, est.cfg, est.ukf.points_fn
+        lam = points.alpha**2 * (points.n + points.kappa) - points.n
+        cam_arr = np.array((cam.fx, cam.fy, cam.cu, cam.cv), float)
+        out = (float(lam), cam_arr, np.asarray(cfg.x3_bounds, float), float(cfg.x12_limit))
+        _CONSTANTS[est] = out
+    return out
 
 
 def step_team(estimators: Sequence[TargetEstimator], inputs: Sequence[StepInput]) -> list[Estimate]:
@@ -265,9 +273,8 @@ def step_team(estimators: Sequence[TargetEstimator], inputs: Sequence[StepInput]
     if not first.cfg.vectorized:
         return [est.step(*inp) for est, inp in zip(estimators, inputs, strict=True)]
     plans = [est.begin_step(*inp) for est, inp in zip(estimators, inputs, strict=True)]
-    ukf, cfg, cam = first.ukf, first.cfg, first.camera
-    points = ukf.points_fn
-    lam = points.alpha**2 * (points.n + points.kappa) - points.n
+    ukf = first.ukf
+    lam, *constants = _constants(first)
     K = len(estimators)
     x = np.array([est.ukf.x for est in estimators], float)
     P = np.array([est.ukf.P for est in estimators], float)
@@ -285,8 +292,7 @@ def step_team(estimators: Sequence[TargetEstimator], inputs: Sequence[StepInput]
         np.array([p.accel for p in plans], float),
         seen,
         np.array([p.yaw for p in plans]),
-        z, R, float(first.dt), float(lam), ukf.Wm, ukf.Wc, ukf.Q,
-        *_constants(cam, cfg), first._max_std,
+        z, R, float(first.dt), lam, ukf.Wm, ukf.Wc, ukf.Q, *constants, first._max_std,
     )  # fmt: skip
 
     out = []

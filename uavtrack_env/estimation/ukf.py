@@ -43,7 +43,13 @@ from filterpy.kalman import MerweScaledSigmaPoints, UnscentedKalmanFilter, unsce
 
 from uavtrack_env.config import DT, CameraConfig
 from uavtrack_env.estimation.motion_prediction import MotionFit, MotionHistory
-from uavtrack_env.geometry import cam_to_world_vec, feature_rates, world_to_cam_vec, wrap_angle
+from uavtrack_env.geometry import (
+    cam_to_world_vec,
+    feature_rates,
+    world_to_cam_vec,
+    wrap_angle,
+    wrap_scalar,
+)
 from uavtrack_env.validation import Fields as _Fields
 
 DIM_X = 10
@@ -174,6 +180,18 @@ class Measurement:
     """The box touches the left or right image border: its centre u is biased inwards."""
     truncated_v: bool = False
     """The box touches the top or bottom image border: its centre v is biased inwards."""
+
+    @classmethod
+    def trusted(
+        cls, u: float, v: float, depth: float, psi: float, truncated_u: bool, truncated_v: bool
+    ) -> Measurement:
+        """A measurement from the env's own detector, already finite with depth > 0: built
+        without the checks of the constructor."""
+        meas = object.__new__(cls)
+        meas.__dict__.update(
+            u=u, v=v, depth=depth, psi=psi, truncated_u=truncated_u, truncated_v=truncated_v
+        )
+        return meas
 
     def __post_init__(self) -> None:
         vals = (self.u, self.v, self.depth, self.psi)
@@ -527,9 +545,8 @@ class TargetEstimator:
     def _z(self, meas: Measurement, uav_position: np.ndarray) -> np.ndarray:
         if not isinstance(meas, Measurement):
             raise ValueError(f"meas must be a Measurement or None, got {type(meas).__name__}")
-        return np.array(
-            [meas.u, meas.v, meas.depth, wrap_angle(meas.psi), *uav_position], dtype=float
-        )
+        x, y, z = uav_position.tolist()
+        return np.array((meas.u, meas.v, meas.depth, wrap_scalar(meas.psi), x, y, z), dtype=float)
 
     def _clamp_accel(self, fit: MotionFit | None) -> np.ndarray:
         if fit is None:

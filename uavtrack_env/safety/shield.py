@@ -515,14 +515,14 @@ class SafetyFilter:
         gave_up = [rows.name(kept[j], ids) for j in over_hard.tolist()]
         if v @ v >= self.alpha_v**2 * (1.0 - 1e-9):
             active_rows.append("speed")
-        if np.abs(v).max() >= self.v_max * (1.0 - 1e-9):
+        if max(map(abs, v.tolist())) >= self.v_max * (1.0 - 1e-9):
             active_rows.append("box")
         if u_safe[3] != u[3]:
             active_rows.append("yaw_rate")
         return ShieldReport(
             status=status,
             active=True,
-            correction_norm=float(np.linalg.norm(u_safe - u)),
+            correction_norm=_norm(u_safe - u),
             slack=float(slack_total),
             active_rows=active_rows,
             solver=solver,
@@ -534,6 +534,11 @@ class SafetyFilter:
             rows=rows,
             neighbour_ids=ctx.neighbour_ids,
         )
+
+
+def _norm(x: np.ndarray) -> float:
+    """The Euclidean norm of a vector (as `np.linalg.norm` computes it: sqrt of x . x)."""
+    return math.sqrt(x @ x)
 
 
 def _checked_nominal(u_nominal: np.ndarray, ctx: SafetyContext) -> np.ndarray:

@@ -107,15 +107,18 @@ class CBFShield(BaseParallelWrapper):
         # The env's own validation: identical errors, raised before anything changes.
         u, clipped = self._raw.validate_actions(actions)
         safe, certified, reports = {}, {}, {}
+        u_env, clipped_env = u.copy(), clipped.copy()  # what the env makes of ``safe``
         for agent, action in actions.items():
-            u_safe, report = self.certify(agent, u[self._ids[agent]])
+            i = self._ids[agent]
+            u_safe, report = self.certify(agent, u[i])
             reports[agent] = report
             certified[agent] = np.clip(u_safe / self._scale, -1.0, 1.0)
             # An unchanged action is passed through as given (bit-identical behaviour).
             safe[agent] = certified[agent] if report.active else action
+            if report.active:
+                u_env[i], clipped_env[i] = certified[agent] * self._scale, False
         if self.env is self._raw:  # checked above: the env's step without checking again
-            checked = {a: np.asarray(act, dtype=np.float64) for a, act in safe.items()}
-            out = self._raw._step_checked(*self._raw._scaled(checked))
+            out = self._raw._step_checked(u_env, clipped_env)
         else:
             out = self.env.step(safe)
         obs, rewards, terms, truncs, infos = out
