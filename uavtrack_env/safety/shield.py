@@ -182,9 +182,14 @@ class ShieldReport:
     @property
     def min_hard_h(self) -> float:
         """Smallest barrier value of the hard rows (< 0: the state is already unsafe)."""
-        if self.rows is None or not self.rows.hard.any():
+        if self.rows is None:
             return math.inf
-        return float(self.rows.h[self.rows.hard].min())
+        hard = [
+            h
+            for k, h in zip(self.rows.kind.tolist(), self.rows.h.tolist(), strict=True)
+            if k < CONNECT
+        ]
+        return min(hard, default=math.inf)
 
     @property
     def min_h_by_family(self) -> dict[str, float]:
