@@ -29,11 +29,13 @@ def vec():
         env.close()
 
 
-@pytest.mark.parametrize("terminate", ["agent", "all"])
-def test_world_k_equals_a_parallel_env_seeded_s_plus_k(vec, make_env, terminate):
-    """Same observations, rewards, terminations, truncations and costs, with collisions."""
+@pytest.mark.parametrize("full_infos", [True, False], ids=["world-by-world", "batched"])
+@pytest.mark.parametrize("terminate", ["agent", "all", "never"])
+def test_world_k_equals_a_parallel_env_seeded_s_plus_k(vec, make_env, terminate, full_infos):
+    """Same observations, rewards, terminations, truncations and costs, with collisions, for
+    the batched step and the world-by-world one (``full_infos``)."""
     k_worlds, seed, steps = 3, 11, 30
-    v = vec(k_worlds, terminate_on_collision=terminate, full_infos=True)
+    v = vec(k_worlds, terminate_on_collision=terminate, full_infos=full_infos)
     rng = np.random.default_rng(0)
     actions = [_actions(rng, k_worlds, 3) for _ in range(steps)]
     for a in actions:
@@ -63,19 +65,59 @@ def test_world_k_equals_a_parallel_env_seeded_s_plus_k(vec, make_env, terminate)
                 assert vinfo["cost"][k, i_] == info[ag]["cost"]
                 for name, c in info[ag]["costs"].items():
                     assert vinfo["costs"][name][k, i_] == c
-            full = vinfo["agents"][k]
-            assert full.keys() == info.keys()
-            if final:
-                assert vinfo["reset_infos"][k].keys() == set(env.possible_agents)
-            for ag in live:
-                assert full[ag]["violations"] == info[ag]["violations"]
-                own, ref = full[ag]["own"]["position"], info[ag]["own"]["position"]
-                np.testing.assert_array_equal(own, ref)
-            ended_any |= any(term.values())
+            if full_infos:
+                full = vinfo["agents"][k]
+                assert full.keys() == info.keys()
+                if final:
+                    assert vinfo["reset_infos"][k].keys() == set(env.possible_agents)
+                for ag in live:
+                    assert full[ag]["violations"] == info[ag]["violations"]
+                    own, ref = full[ag]["own"]["position"], info[ag]["own"]["position"]
+                    np.testing.assert_array_equal(own, ref)
+            ended_any |= any(term.values()) or any(i["cost"] > 0 for i in info.values())
             took_part = [f"uav_{j}" in live for j in range(3)]
             np.testing.assert_array_equal(vinfo["active"][k], took_part)
         env.close()
     assert ended_any  # the random actions did crash UAVs: the comparison covered terminations
+
+
+@pytest.mark.parametrize(
+    "kw",
+    [
+        {"n_uavs": 3, "terminate_on_collision": "agent"},
+        {"n_uavs": 1, "terminate_on_collision": "all", "dynamics": {"model": "lag"}},
+        {"n_uavs": 4, "n_obstacles_obs": 20, "comms": {"drop_prob": 0.3}},
+    ],
+    ids=["n3", "n1-lag", "n4-more-obstacle-slots-than-obstacles"],
+)
+def test_batched_step_equals_world_by_world_across_autoresets(vec, kw):
+    """The batched core and the ParallelEnvs stepped one by one give the same arrays, bit for
+    bit, over several autoresets of worlds with different obstacle counts."""
+    k_worlds, steps = 5, 75
+    fast = vec(k_worlds, **kw, max_cycles=25)
+    slow = vec(k_worlds, **kw, max_cycles=25, full_infos=True)
+    o1, _ = fast.reset(seed=3)
+    o2, _ = slow.reset(seed=3)
+    assert len(set(fast._obstacles.counts)) > 1  # padded obstacles are exercised
+    np.testing.assert_array_equal(o1, o2)
+    rng = np.random.default_rng(1)
+    resets = 0
+    for _ in range(steps):
+        a = _actions(rng, k_worlds, fast.n_agents)
+        out1, out2 = fast.step(a), slow.step(a)
+        for x, y in zip(out1[:4], out2[:4], strict=True):
+            np.testing.assert_array_equal(x, y)
+        i1, i2 = out1[4], out2[4]
+        for key in ("cost", "reward_tracking", "reward_effort", "action_clipped", "active"):
+            np.testing.assert_array_equal(i1[key], i2[key])
+        for name in i1["costs"]:
+            np.testing.assert_array_equal(i1["costs"][name], i2["costs"][name])
+        assert ("final_obs" in i1) == ("final_obs" in i2)
+        if "final_obs" in i1:
+            np.testing.assert_array_equal(i1["final_obs"], i2["final_obs"])
+            np.testing.assert_array_equal(i1["_final_obs"], i2["_final_obs"])
+            resets += int(i1["_final_obs"].sum())
+    assert resets >= k_worlds * 2  # every world truncated at least twice
 
 
 def test_shapes_dtypes_and_autoreset(vec):

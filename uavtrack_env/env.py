@@ -12,14 +12,13 @@ import numpy as np
 from gymnasium.utils import seeding
 from pettingzoo import ParallelEnv
 
+from . import core
 from . import render as rendering
-from .config import DT, EnvConfig
-from .dynamics import integrate
-from .geometry import occlusion_angle, point_box_distance, world_to_cam_vec
-from .rewards import connected, effort_term, reward, tracking_term
+from .config import EnvConfig
+from .core import NEIGHBOUR_FIELDS, OBSTACLE_FIELDS, Measurements, Score
 from .scenarios import Layout, make_layout
-from .sensors import Detections, Detector, UAVSnapshot, receive_positions
-from .target import CAR_HALF_EXTENTS, TargetMotion
+from .sensors import Detections, Detector, UAVSnapshot
+from .target import TargetMotion
 from .world import World
 
 Bound = float | Callable[[EnvConfig], float]
@@ -110,50 +109,6 @@ OBSTACLE_FIELD = ObsField(
 )
 """Per obstacle (one of the K nearest): relative centre in the camera frame (3, m), half extents
 (3, m), mask (1)."""
-NEIGHBOUR_FIELDS = NEIGHBOUR_FIELD.size
-"""Entries per neighbour (4)."""
-OBSTACLE_FIELDS = OBSTACLE_FIELD.size
-"""Entries per obstacle (7)."""
-
-
-@dataclass
-class Measurements:
-    """What the sensors and the world's geometry report at one step (leading axis: UAV)."""
-
-    detections: Detections
-    distances: np.ndarray
-    """(n, n) inter-UAV distances (m)."""
-    received: np.ndarray
-    """(n, n) bool: UAV i received UAV j's position this step."""
-    contacts: dict[str, np.ndarray]
-    """``ground``, ``obstacle``, ``target``: (n,) bool PyBullet contacts."""
-    nearest_uav: np.ndarray
-    """(n,) distance to the nearest other alive UAV (inf if none)."""
-    obstacle_clearance: np.ndarray
-    """(n, m) distance from each UAV's sphere to each obstacle box (m)."""
-    nearest_obstacle: np.ndarray
-    """(n,) smallest obstacle clearance (inf without obstacles)."""
-    target_center: np.ndarray
-    target_heading: float
-    target_clearance: np.ndarray
-    """(n,) distance from each UAV's sphere to the car's oriented box (m)."""
-    occlusion_angles: np.ndarray
-    """(n, m) theta of eq. (38)."""
-    occlusion_candidates: np.ndarray
-    """(n, m) bool: obstacle in N_oi (39)."""
-
-
-@dataclass
-class Score:
-    """This step's reward terms and safety violations (n,) per UAV."""
-
-    tracking: np.ndarray
-    effort: np.ndarray
-    reward: np.ndarray
-    collided: np.ndarray
-    uav_too_close: np.ndarray
-    disconnected: bool
-    occluded: np.ndarray
 
 
 NOTHING_NEAR = 1.0e4
@@ -320,10 +275,11 @@ class UAVTrackEnv(ParallelEnv):
         self._clip_count = np.zeros(n, int)
         self.last_action = np.zeros((n, 4))
         self.world.set_poses(self.position, self.yaw, self.alive, self.target.center(), 0.0)
+        self._obstacles = core.Obstacles.stack([layout])
         u, clipped = np.zeros((n, 4)), np.zeros(n, bool)
-        m = self._sense()
-        score = self._score(m, u)
-        return self._observe(m), self._infos(m, score, u, clipped)
+        batch = self._sense()
+        m, score = self._view(batch, self._score(batch, u))
+        return self._observe(batch), self._infos(m, score, u, clipped)
 
     # ------------------------------------------------------------------- step
     def step(self, actions: dict[str, Any]):
@@ -332,18 +288,24 @@ class UAVTrackEnv(ParallelEnv):
 
     def _step_checked(self, u: np.ndarray, clipped: np.ndarray):
         """`step` of actions `validate_actions` has checked and scaled (u, clipped)."""
-        m, score = self._advance(u, clipped)
-        obs = self._observe(m)
+        batch, batch_score = self._advance(u, clipped)
+        obs = self._observe(batch)
+        m, score = self._view(batch, batch_score)
         rewards = {a: float(score.reward[self._index[a]]) for a in self.agents}
         infos = self._infos(m, score, u, clipped)
         terminations, truncations = self._episode_end(score.collided)
         return obs, rewards, terminations, truncations, infos
 
     def _advance(self, u: np.ndarray, clipped: np.ndarray) -> tuple[Measurements, Score]:
-        """simulate -> sense -> score: the step's state change and its measurements."""
+        """simulate -> sense -> score: the step's state change and its measurements (a batch
+        of one world; `_view` gives the world's own)."""
         self._simulate(u, clipped)
         m = self._sense()
         return m, self._score(m, u)
+
+    def _view(self, m: Measurements, score: Score) -> tuple[Measurements, Score]:
+        """This world's measurements and score from its batch of one."""
+        return m.world(0, self._obstacles.counts[0]), score.world(0)
 
     def validate_actions(self, actions: dict[str, Any]) -> tuple[np.ndarray, np.ndarray]:
         """Check a step's actions without changing anything.
@@ -407,97 +369,33 @@ class UAVTrackEnv(ParallelEnv):
     def _simulate(self, u: np.ndarray, clipped: np.ndarray) -> None:
         """Apply u (zero for finished UAVs) for one step; move the car; pose the bodies."""
         self._clip_count += clipped
-        u = np.where(self.alive[:, None], u, 0.0)
-        self.position, self.yaw, self.velocity, self.yaw_rate = integrate(
-            self.position, self.yaw, self.velocity, self.yaw_rate, u, self.config.dynamics, DT
+        state = (self.position[None], self.yaw[None], self.velocity[None], self.yaw_rate[None])
+        new, u = core.simulate(
+            self.config, [self.world], [self.target], state, self.alive[None], u[None]
         )
-        self.target.step(DT)
-        self.world.set_poses(
-            self.position, self.yaw, self.alive, self.target.center(), self.target.heading
-        )
-        self.last_action = u
+        self.position, self.yaw, self.velocity, self.yaw_rate = (x[0] for x in new)
+        self.last_action = u[0]
         self.num_cycles += 1
 
     # ------------------------------------------------------------------ sense
     def _sense(self) -> Measurements:
-        """Detector, comms, contacts and distances for this step.
+        """Detector, comms, contacts and distances for this step (a batch of one world, the
+        arithmetic of `vector_env`; `uavtrack_env.core`).
 
         The random stream is drawn in a fixed order: the detector, then the comms.
         """
-        cfg, rng = self.config, self.np_random
-        n = cfg.n_uavs
-        tgt_c, heading = self.target.center(), self.target.heading
-        det = self.detector.detect(
-            self.world, self.position, self.yaw, tgt_c, heading, heading, rng
-        )
-        self.last_detection = det
-        pair = np.linalg.norm(self.position[:, None] - self.position[None], axis=-1)
-        received = receive_positions(pair, self.alive, cfg.comms, rng)
-        hits = self.world.contacts(n)
-
-        dist = pair.copy()
-        dist[~self.alive, :] = np.inf
-        dist[:, ~self.alive] = np.inf
-        np.fill_diagonal(dist, np.inf)
-        clearance = (
-            point_box_distance(
-                self.position, self.layout.obstacle_centers, self.layout.obstacle_half_extents
-            )
-            - cfg.uav_radius
-        )
-        theta, in_noi = self._occlusion_angles(tgt_c)
-        return Measurements(
-            detections=det,
-            distances=pair,
-            received=received,
-            contacts=hits,
-            nearest_uav=dist.min(axis=1),
-            obstacle_clearance=clearance,
-            nearest_obstacle=clearance.min(axis=1) if clearance.shape[1] else np.full(n, np.inf),
-            target_center=tgt_c,
-            target_heading=heading,
-            target_clearance=self._target_clearance(tgt_c, heading),
-            occlusion_angles=theta,
-            occlusion_candidates=in_noi,
-        )
-
-    def _occlusion_angles(self, target_center: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """theta (n, m) of eq. (38) with n^i = target - p^i (36), and membership of N_oi (39)."""
-        centers = self.layout.obstacle_centers
-        n_vec = target_center - self.position  # (n, 3)
-        theta = occlusion_angle(self.position[:, None], centers[None], n_vec[:, None])
-        d_obs = np.linalg.norm(centers[None] - self.position[:, None], axis=-1)
-        return theta, d_obs <= np.linalg.norm(n_vec, axis=-1)[:, None]
-
-    def _target_clearance(self, center: np.ndarray, heading: float) -> np.ndarray:
-        """Distance from each UAV's sphere to the car's oriented box (n,)."""
-        local = self.position - center
-        c, s = np.cos(heading), np.sin(heading)
-        local = np.column_stack(
-            [c * local[:, 0] + s * local[:, 1], -s * local[:, 0] + c * local[:, 1], local[:, 2]]
-        )
-        d = point_box_distance(local, np.zeros((1, 3)), CAR_HALF_EXTENTS[None])[:, 0]
-        return d - self.config.uav_radius
+        m = core.sense(
+            self.config, self.detector, [self.world], [self.target], [self.np_random],
+            self._obstacles, self.position[None], self.yaw[None], self.alive[None],
+        )  # fmt: skip
+        self.last_detection = m.detections.world(0)
+        return m
 
     # ------------------------------------------------------------------ score
     def _score(self, m: Measurements, u: np.ndarray) -> Score:
-        """Reward terms (from the true features and u) and the three violations."""
-        cfg, det, hits = self.config, m.detections, m.contacts
-        too_close = m.nearest_uav < cfg.violations.r_s
-        collided = (hits["ground"] | hits["obstacle"] | hits["target"] | too_close) & self.alive
-        tracking = tracking_term(
-            det.true_features, self.references, det.in_front, det.detected, cfg.reward
-        )
-        effort = effort_term(u, cfg.reward)
-        return Score(
-            tracking=tracking,
-            effort=effort,
-            reward=reward(tracking + effort, collided, cfg.reward),
-            collided=collided,
-            uav_too_close=too_close,
-            disconnected=not connected(m.distances, self.alive, cfg.comms.r_c),
-            occluded=det.blocked_fraction > 1.0 - cfg.detector.min_visible_fraction,
-        )
+        """Reward terms (from the true features and u) and the three violations (a batch of one
+        world)."""
+        return core.score(self.config, m, self.references[None], self.alive[None], u[None])
 
     # ---------------------------------------------------------------- observe
     def _observe(self, m: Measurements) -> dict[str, np.ndarray]:
@@ -507,76 +405,12 @@ class UAVTrackEnv(ParallelEnv):
 
     def _observation_array(self, m: Measurements) -> np.ndarray:
         """Every UAV's observation (n, n_obs) float32, clipped to the observation space (rows
-        of finished UAVs included)."""
-        blocks = [self._own_block(m.detections)]
-        if self.config.n_neighbours:
-            blocks.append(self._neighbour_block(m.received, m.distances))
-        if self.config.n_obstacles_obs:
-            blocks.append(self._obstacle_block(m.obstacle_clearance))
-        obs = np.clip(np.concatenate(blocks, 1), self._obs_low, self._obs_high)
-        return obs.astype(np.float32)
-
-    def _own_block(self, det: Detections) -> np.ndarray:
-        """OWN_FIELDS for all UAVs (n, 19): measured features, detection, own motion, s*."""
-        cam = self.config.camera
-        with np.errstate(invalid="ignore", divide="ignore"):
-            feats = np.column_stack(
-                [
-                    (det.u - cam.cu) / cam.fx,
-                    (det.v - cam.cv) / cam.fy,
-                    1.0 / det.depth,
-                    np.sin(det.psi),
-                    np.cos(det.psi),
-                ]
-            )
-        feats[~det.detected] = 0.0
-        ref = self.references
-        return np.column_stack(
-            [
-                feats,
-                det.detected,
-                det.visible_fraction,
-                world_to_cam_vec(self.velocity, self.yaw),
-                -self.yaw_rate,
-                np.sin(self.yaw),
-                np.cos(self.yaw),
-                self.position[:, 2],
-                ref[:, :3],
-                np.sin(ref[:, 3]),
-                np.cos(ref[:, 3]),
-            ]
-        )
-
-    def _neighbour_block(self, received: np.ndarray, pair: np.ndarray) -> np.ndarray:
-        """The K nearest received neighbours (n, K * 4), camera frame, zero-padded."""
-        n, k = self.config.n_uavs, self.config.n_neighbours
-        d = np.where(received, pair, np.inf)
-        order = np.argsort(d, axis=1, kind="stable")[:, :k]
-        rel = self.position[order] - self.position[:, None]
-        mask = np.isfinite(np.take_along_axis(d, order, 1))
-        rel = world_to_cam_vec(rel, self.yaw[:, None]) * mask[..., None]
-        nb = np.concatenate([rel, mask[..., None]], -1)
-        if nb.shape[1] < k:
-            nb = np.concatenate([nb, np.zeros((n, k - nb.shape[1], NEIGHBOUR_FIELDS))], 1)
-        return nb.reshape(n, -1)
-
-    def _obstacle_block(self, clearance: np.ndarray) -> np.ndarray:
-        """The K nearest obstacles (n, K * 7), camera frame, zero-padded."""
-        n, k = self.config.n_uavs, self.config.n_obstacles_obs
-        m = clearance.shape[1]
-        order = np.argsort(clearance, axis=1, kind="stable")[:, :k]
-        rel = self.layout.obstacle_centers[order] - self.position[:, None]
-        ob = np.concatenate(
-            [
-                world_to_cam_vec(rel, self.yaw[:, None]),
-                self.layout.obstacle_half_extents[order],
-                np.ones(order.shape + (1,)),
-            ],
-            -1,
-        )
-        if m < k:
-            ob = np.concatenate([ob, np.zeros((n, k - m, OBSTACLE_FIELDS))], 1)
-        return ob.reshape(n, -1)
+        of finished UAVs included), from the batch of one world ``m``."""
+        state = (self.position[None], self.yaw[None], self.velocity[None], self.yaw_rate[None])
+        bounds = (self._obs_low, self._obs_high)
+        return core.observation(
+            self.config, m, state, self.references[None], self._obstacles, bounds
+        )[0]
 
     # ------------------------------------------------------------------ infos
     def _infos(

@@ -33,12 +33,13 @@ def tracking_term(
     """sum_k q_k e_k^2 (n,), capped per feature, plus ``lost_penalty`` when not detected."""
     e = np.clip(feature_error(true_features, references), -_FEATURE_ERROR_CAP, _FEATURE_ERROR_CAP)
     e[~in_front, :3] = _FEATURE_ERROR_CAP[:3]
-    return (e**2) @ np.asarray(cfg.q) + cfg.lost_penalty * ~detected
+    # Row-wise sums, not a matrix product: the same value whatever the batch (K worlds x n).
+    return (e**2 * np.asarray(cfg.q)).sum(axis=-1) + cfg.lost_penalty * ~detected
 
 
 def effort_term(u: np.ndarray, cfg: RewardConfig) -> np.ndarray:
     """sum_k r_k u_k^2 (n,), the input cost of eq. (18) with u_d = 0."""
-    return (u**2) @ np.asarray(cfg.r)
+    return (u**2 * np.asarray(cfg.r)).sum(axis=-1)
 
 
 def reward(stage_cost: np.ndarray, collided: np.ndarray, cfg: RewardConfig) -> np.ndarray:

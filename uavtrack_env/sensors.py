@@ -53,6 +53,10 @@ class Detections:
         """A deep copy (every array copied)."""
         return Detections(**{f.name: getattr(self, f.name).copy() for f in fields(self)})
 
+    def world(self, k: int) -> Detections:
+        """World k of a batch (`Detector.detect_batch`, arrays (K, n, ...)): views (n, ...)."""
+        return Detections(**{f.name: getattr(self, f.name)[k] for f in fields(self)})
+
 
 @dataclass(frozen=True)
 class UAVSnapshot:
@@ -101,10 +105,12 @@ _CORNER_SIGNS = np.array(
 )
 
 
-def _to_world(local: np.ndarray, center: np.ndarray, yaw: float) -> np.ndarray:
-    c, s = np.cos(yaw), np.sin(yaw)
+def _to_world(local: np.ndarray, centers: np.ndarray, yaws: np.ndarray) -> np.ndarray:
+    """Points (P, 3) of a body frame in the global frame of K bodies: (K, P, 3)."""
+    c, s = np.cos(yaws)[:, None], np.sin(yaws)[:, None]
     x, y = local[:, 0], local[:, 1]
-    return np.column_stack([c * x - s * y, s * x + c * y, local[:, 2]]) + center
+    z = np.broadcast_to(local[:, 2], c.shape[:1] + local.shape[:1])
+    return np.stack([c * x - s * y, s * x + c * y, z], -1) + centers[:, None]
 
 
 class Detector:
@@ -128,18 +134,46 @@ class Detector:
         target_heading: float,
         rng: np.random.Generator,
     ) -> Detections:
-        """One frame for all UAVs: project, ray-cast, box, then add noise and dropouts."""
+        """One frame for all UAVs of one world: project, ray-cast, box, then add noise and
+        dropouts."""
+        return self.detect_batch(
+            [world],
+            positions[None],
+            yaws[None],
+            np.asarray(target_center, float)[None],
+            np.array([target_yaw], float),
+            np.array([target_heading], float),
+            [rng],
+        ).world(0)
+
+    def detect_batch(
+        self,
+        worlds: list[World],
+        positions: np.ndarray,
+        yaws: np.ndarray,
+        target_centers: np.ndarray,
+        target_yaws: np.ndarray,
+        target_headings: np.ndarray,
+        rngs: list[np.random.Generator],
+    ) -> Detections:
+        """`detect` for K worlds at once: positions (K, n, 3), yaws (K, n), the cars' centres
+        (K, 3), yaws and headings (K,); each world casts its rays in its own PyBullet client
+        and draws its noise from its own generator. Returns arrays (K, n, ...)."""
         s = self._n_samples
-        points = _to_world(self._local, target_center, target_yaw)  # (P, 3)
-        proj = self._project(points, positions, yaws)
+        K, n = yaws.shape
+        points = _to_world(self._local, target_centers, target_yaws)  # (K, P, 3)
+        pos, yaw = positions.reshape(K * n, 3), yaws.reshape(K * n)
+        proj = self._project(np.repeat(points, n, axis=0), pos, yaw)
         z0 = np.where(np.abs(proj.Z[:, 0]) < 1e-9, 1e-9, proj.Z[:, 0])
-        psi = relative_angle(positions, target_center, target_heading)
+        psi = relative_angle(
+            pos, np.repeat(target_centers, n, axis=0), np.repeat(target_headings, n)
+        )
         true = np.column_stack([proj.X[:, 0] / z0, proj.Y[:, 0] / z0, 1.0 / z0, psi])
-        visible, blocked = self._visibility(world, positions, points[1 : 1 + s], proj)
+        visible, blocked = self._visibility(worlds, pos, points[:, 1 : 1 + s], proj)
         all_front, box_u, box_v, truncated = self._box(proj)
-        detected, noisy = self._measure(all_front, visible, box_u, box_v, proj.Z[:, 0], psi, rng)
+        detected, noisy = self._measure(all_front, visible, box_u, box_v, proj.Z[:, 0], psi, rngs)
         cam = self.camera
-        return Detections(
+        det = Detections(
             detected=detected,
             u=noisy[0],
             v=noisy[1],
@@ -157,11 +191,16 @@ class Detector:
                 ]
             ),
         )
+        return Detections(
+            **{f.name: getattr(det, f.name).reshape(K, n, *getattr(det, f.name).shape[1:])
+               for f in fields(det)}
+        )  # fmt: skip
 
     def _project(self, points: np.ndarray, positions: np.ndarray, yaws: np.ndarray) -> _Projection:
-        """Camera-frame coordinates and pixels of the (P,) target points seen by the n UAVs."""
+        """Camera-frame coordinates and pixels of the target points (B, P, 3) seen by the B
+        UAVs (one row of points per UAV)."""
         cam = self.camera
-        d = points[None] - positions[:, None]  # (n, P, 3)
+        d = points - positions[:, None]  # (B, P, 3)
         c, sn = np.cos(yaws)[:, None], np.sin(yaws)[:, None]
         X = sn * d[..., 0] - c * d[..., 1]  # camera frame, see geometry.world_to_cam_vec
         Y = -d[..., 2]
@@ -171,17 +210,24 @@ class Detector:
         return _Projection(X, Y, Z, front, cam.fx * X / Zs + cam.cu, cam.fy * Y / Zs + cam.cv)
 
     def _visibility(
-        self, world: World, positions: np.ndarray, samples: np.ndarray, proj: _Projection
+        self, worlds: list[World], positions: np.ndarray, samples: np.ndarray, proj: _Projection
     ) -> tuple[np.ndarray, np.ndarray]:
-        """(visible, blocked) fractions (n,) of the sample points: in the image and reached by a
-        ray; blocked = not reached (whatever the image bounds)."""
-        cam, s, n = self.camera, self._n_samples, len(positions)
+        """(visible, blocked) fractions (B,) of the sample points (K, s, 3) of K worlds: in the
+        image and reached by a ray; blocked = not reached (whatever the image bounds)."""
+        cam, s = self.camera, self._n_samples
+        n = len(positions) // len(worlds)
         sp = slice(1, 1 + s)
         pu, pv = proj.pu[:, sp], proj.pv[:, sp]
         in_image = proj.front[:, sp] & (pu >= 0) & (pu < cam.width) & (pv >= 0) & (pv < cam.height)
-        reach = world.rays_reach_target(
-            np.repeat(positions, s, axis=0), np.tile(samples, (n, 1))
-        ).reshape(n, s)
+        reach = np.concatenate(
+            [
+                world.rays_reach_target(
+                    np.repeat(positions[k * n : (k + 1) * n], s, axis=0),
+                    np.tile(samples[k], (n, 1)),
+                )
+                for k, world in enumerate(worlds)
+            ]
+        ).reshape(-1, s)
         return (in_image & reach).mean(axis=1), 1.0 - reach.mean(axis=1)
 
     def _box(self, proj: _Projection) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -205,16 +251,20 @@ class Detector:
         box_v: np.ndarray,
         depth: np.ndarray,
         psi: np.ndarray,
-        rng: np.random.Generator,
+        rngs: list[np.random.Generator],
     ) -> tuple[np.ndarray, tuple[np.ndarray, ...]]:
-        """Detected flags (n,) and the noisy (u, v, depth, psi), NaN where not detected."""
+        """Detected flags (B,) and the noisy (u, v, depth, psi), NaN where not detected; world
+        k's rows draw from ``rngs[k]``."""
         cam, cfg = self.camera, self.cfg
-        n = len(all_front)
-        # A fixed number of draws per frame keeps the random stream independent of outcomes.
-        noise = rng.standard_normal((n, 4))
-        dropped = rng.random(n) < cfg.dropout_prob
+        B = len(all_front)
+        n = B // len(rngs)
+        # A fixed number of draws per frame keeps the random stream independent of outcomes;
+        # each world draws its noise, then its dropouts.
+        draws = [(rng.standard_normal((n, 4)), rng.random(n)) for rng in rngs]
+        noise = np.concatenate([d[0] for d in draws])
+        dropped = np.concatenate([d[1] for d in draws]) < cfg.dropout_prob
         detected = all_front & (visible >= cfg.min_visible_fraction) & ~dropped
-        nan = np.full(n, np.nan)
+        nan = np.full(B, np.nan)
         return detected, (
             np.where(detected, box_u + cfg.pixel_noise_std * noise[:, 0], nan),
             np.where(detected, box_v + cfg.pixel_noise_std * noise[:, 1], nan),
@@ -232,8 +282,15 @@ def receive_positions(
 
     ``dist`` is the (n, n) matrix of inter-UAV distances.
     """
-    n = len(dist)
-    lost = rng.random((n, n)) < cfg.drop_prob
-    received = (dist <= cfg.r_c) & ~lost & alive[:, None] & alive[None, :]
-    np.fill_diagonal(received, False)
+    return receive_batch(dist[None], alive[None], cfg, [rng])[0]
+
+
+def receive_batch(
+    dist: np.ndarray, alive: np.ndarray, cfg: CommsConfig, rngs: list[np.random.Generator]
+) -> np.ndarray:
+    """`receive_positions` for K worlds: dist (K, n, n), alive (K, n) -> (K, n, n)."""
+    n = dist.shape[-1]
+    lost = np.stack([rng.random((n, n)) for rng in rngs]) < cfg.drop_prob
+    received = (dist <= cfg.r_c) & ~lost & alive[:, :, None] & alive[:, None, :]
+    received[:, np.arange(n), np.arange(n)] = False
     return received

@@ -37,6 +37,8 @@ import gymnasium
 import numpy as np
 from gymnasium.vector import AutoresetMode
 
+from . import core
+from .core import Obstacles, Score
 from .env import UAVTrackEnv
 
 VIOLATIONS = ("collision", "disconnection", "occlusion")
@@ -73,6 +75,17 @@ class UAVTrackVectorEnv:
         self._scale = first._scale
         self._active = np.zeros(shape, bool)
         self._started = False
+        # The worlds' state as arrays (K, n, ...): the batched step reads and writes these; each
+        # world's env keeps its PyBullet client, car, layout and random stream.
+        K, n = shape
+        self._state = (np.zeros((K, n, 3)), np.zeros(shape), np.zeros((K, n, 3)), np.zeros(shape))
+        self._alive = np.zeros(shape, bool)
+        self._references = np.zeros((K, n, 4))
+        self._cycles = np.zeros(K, int)
+        self._max_cycles = first.max_cycles
+        self._detector = first.detector
+        self._bounds = (first._obs_low, first._obs_high)
+        self._obstacles: Obstacles | None = None
 
     # ------------------------------------------------------------------ reset
     def reset(
@@ -86,13 +99,26 @@ class UAVTrackVectorEnv:
         for k in range(self.num_envs):
             obs[k], info = self._reset_world(k, None if seed is None else int(seed) + k, options)
             per_world.append(info)
+        self._obstacles = Obstacles.stack([env.layout for env in self.envs])
         self._started = True
         return obs, self._stack(per_world)
+
+    def _load(self, k: int) -> None:
+        """Take world k's state from its env (after its reset, or a step of it)."""
+        env = self.envs[k]
+        for mine, theirs in zip(
+            self._state, (env.position, env.yaw, env.velocity, env.yaw_rate), strict=True
+        ):
+            mine[k] = theirs
+        self._alive[k] = env.alive
+        self._references[k] = env.references
+        self._cycles[k] = env.num_cycles
 
     def _reset_world(self, k: int, seed: int | None, options: dict | None):
         env = self.envs[k]
         obs, infos = env.reset(seed=seed, options=options)
         self._active[k] = True
+        self._load(k)
         return np.stack([obs[a] for a in self.possible_agents]), self._reset_info(env, infos)
 
     def _reset_info(self, env: UAVTrackEnv, infos: dict) -> dict[str, np.ndarray]:
@@ -113,49 +139,96 @@ class UAVTrackVectorEnv:
     def step(self, actions: Any):
         """One step of every world (module docstring); bad input raises and changes nothing."""
         u, clipped = self._checked(actions)
-        shape = self._active.shape
-        obs = np.zeros(self.observation_space.shape, np.float32)
-        rewards = np.zeros(shape, np.float32)
-        terminations = np.zeros(shape, bool)
-        truncations = np.zeros(shape, bool)
-        per_world: list[dict[str, Any]] = []
-        final_obs = np.zeros_like(obs)
-        ended = np.zeros(self.num_envs, bool)
-        reset_infos: list[Any] = [None] * self.num_envs
-        for k, env in enumerate(self.envs):
-            active = self._active[k].copy()
-            m, score = env._advance(u[k] * active[:, None], clipped[k] & active)
-            obs[k] = env._observation_array(m) * active[:, None]
-            rewards[k] = score.reward * active
-            info = self._step_info(env, m, score, u[k], clipped[k], active)
-            terminated, truncate = env._end_arrays(score.collided)
-            terminations[k] = terminated & active
-            truncations[k] = truncate & active
-            self._active[k] = active & ~terminations[k] & ~truncations[k]
-            if not env.agents:
-                ended[k] = True
-                final_obs[k] = obs[k]
+        active = self._active.copy()
+        u, clipped = u * active[..., None], clipped & active
+        if self.full_infos:
+            obs, rewards, terminated, truncate, infos = self._step_each(u, clipped, active)
+        else:
+            obs, rewards, terminated, truncate, infos = self._step_batch(u, clipped, active)
+        terminations = terminated & active
+        truncations = truncate[:, None] & active
+        self._active = active & ~terminations & ~truncations
+        ended = truncate | ~self._alive.any(axis=1)
+        if ended.any():
+            infos["final_obs"] = np.where(ended[:, None, None], obs, np.float32(0.0))
+            infos["_final_obs"] = ended
+            reset_infos: list[Any] = [None] * self.num_envs
+            for k in np.flatnonzero(ended):
                 obs[k], reset_info = self._reset_world(k, None, None)
                 reset_infos[k] = reset_info.get("agents")
-            per_world.append(info)
-        infos = self._stack(per_world)
-        if ended.any():
-            infos["final_obs"], infos["_final_obs"] = final_obs, ended
+            self._obstacles = Obstacles.stack([env.layout for env in self.envs])
             if self.full_infos:
                 infos["reset_infos"] = reset_infos
         return obs, rewards, terminations, truncations, infos
 
-    def _step_info(self, env, m, score, u, clipped, active) -> dict[str, Any]:
-        n = self.n_agents
+    def _step_batch(self, u: np.ndarray, clipped: np.ndarray, active: np.ndarray):
+        """simulate -> sense -> score -> observe of all worlds as arrays (`uavtrack_env.core`);
+        then which UAVs the step terminates (K, n) and which worlds it truncates (K,)."""
+        cfg, envs = self.config, self.envs
+        worlds, targets = [e.world for e in envs], [e.target for e in envs]
+        self._state, _ = core.simulate(cfg, worlds, targets, self._state, self._alive, u)
+        self._cycles += 1
+        position, yaw = self._state[0], self._state[1]
+        m = core.sense(
+            cfg, self._detector, worlds, targets, [e.np_random for e in envs], self._obstacles,
+            position, yaw, self._alive,
+        )  # fmt: skip
+        score = core.score(cfg, m, self._references, self._alive, u)
+        obs = core.observation(cfg, m, self._state, self._references, self._obstacles, self._bounds)
+        obs *= active[..., None]
+        infos = self._info_arrays(score, clipped, active)
+        terminated, truncate = self._end(score.collided)
+        return obs, (score.reward * active).astype(np.float32), terminated, truncate, infos
+
+    def _end(self, collided: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """`UAVTrackEnv._end_arrays` of every world: terminated (K, n), truncated (K,); parks
+        the UAVs that left worlds that go on."""
+        mode = self.config.terminate_on_collision
+        if mode == "never":
+            collided = np.zeros_like(collided)  # charged as cost only
+        elif mode == "all":
+            collided = np.where(collided.any(axis=1, keepdims=True), self._alive, collided)
+        truncate = self._cycles >= self._max_cycles
+        self._alive &= ~collided
+        position, yaw = self._state[0], self._state[1]
+        park = collided.any(axis=1) & self._alive.any(axis=1) & ~truncate
+        for k in np.flatnonzero(park):
+            target = self.envs[k].target
+            self.envs[k].world.set_poses(
+                position[k], yaw[k], self._alive[k], target.center(), target.heading
+            )
+        return collided, truncate
+
+    def _step_each(self, u: np.ndarray, clipped: np.ndarray, active: np.ndarray):
+        """The step world by world through each ParallelEnv (``full_infos``: its info dicts)."""
+        obs = np.zeros(self.observation_space.shape, np.float32)
+        rewards = np.zeros(self._active.shape, np.float32)
+        terminated = np.zeros(self._active.shape, bool)
+        truncate = np.zeros(self.num_envs, bool)
+        per_world: list[dict[str, Any]] = []
+        for k, env in enumerate(self.envs):
+            batch, batch_score = env._advance(u[k], clipped[k])
+            obs[k] = env._observation_array(batch) * active[k, :, None]
+            m, score = env._view(batch, batch_score)
+            rewards[k] = score.reward * active[k]
+            info = self._info_arrays(batch_score, clipped[k][None], active[k][None])
+            info["agents"] = [env._infos(m, score, u[k], clipped[k])]
+            terminated[k], truncate[k] = env._end_arrays(score.collided)
+            self._load(k)
+            per_world.append(info)
+        return obs, rewards, terminated, truncate, self._concat(per_world)
+
+    @staticmethod
+    def _info_arrays(score: Score, clipped: np.ndarray, active: np.ndarray) -> dict[str, Any]:
+        """The array infos (K, n) of a step's batch score."""
         collided = score.collided.astype(float)
-        disconnected = np.full(n, float(score.disconnected))
-        occluded = score.occluded.astype(float)
+        disconnected = np.broadcast_to(score.disconnected[:, None], active.shape).astype(float)
         costs = {
             "collision": collided * active,
             "disconnection": disconnected * active,
-            "occlusion": occluded * active,
+            "occlusion": score.occluded.astype(float) * active,
         }
-        out = {
+        return {
             "cost": costs["collision"] + costs["disconnection"] + costs["occlusion"],
             "costs": costs,
             "reward_tracking": -score.tracking * active,
@@ -163,8 +236,18 @@ class UAVTrackVectorEnv:
             "action_clipped": clipped & active,
             "active": active.copy(),
         }
-        if self.full_infos:
-            out["agents"] = env._infos(m, score, u, clipped)
+
+    @staticmethod
+    def _concat(per_world: list[dict[str, Any]]) -> dict[str, Any]:
+        """Join the worlds' infos (1, n) along the world axis."""
+        out: dict[str, Any] = {}
+        for key, value in per_world[0].items():
+            if key == "agents":
+                out[key] = [a for w in per_world for a in w[key]]
+            elif isinstance(value, dict):
+                out[key] = {v: np.concatenate([w[key][v] for w in per_world]) for v in value}
+            else:
+                out[key] = np.concatenate([w[key] for w in per_world])
         return out
 
     def _stack(self, per_world: list[dict[str, Any]]) -> dict[str, Any]:
