@@ -15,7 +15,11 @@ from stable_baselines3.common.vec_env import VecEnv, VecNormalize
 from stable_baselines3.common.vec_env.util import obs_space_info
 
 from uavtrack_env import uavtrack_v0
-from uavtrack_env.wrappers.sb3 import AgentVecMonitor, SharedPolicyVecEnv
+from uavtrack_env.wrappers.sb3 import (
+    AgentVecMonitor,
+    SharedPolicyVecEnv,
+    VectorSharedPolicyVecEnv,
+)
 
 NAN = float("nan")
 
@@ -273,3 +277,50 @@ def test_ppo_learns_on_adapter_and_seeds_reproduce():
     assert np.all(np.isfinite(a))
     np.testing.assert_array_equal(a, b)
     assert not np.array_equal(a, c)
+
+
+@pytest.mark.parametrize("terminate", ["agent", "all"])
+def test_vector_adapter_equals_the_parallel_env_adapter_row_by_row(terminate):
+    """VectorSharedPolicyVecEnv (one batched step of all worlds) gives SharedPolicyVecEnv's
+    rows: observations, rewards, dones, terminal observations, truncation flags, absorbing
+    rows and costs, through crashes and auto-resets."""
+    kw = {"scenario": "random", "max_cycles": 20, "terminate_on_collision": terminate}
+    copies = SharedPolicyVecEnv(lambda: uavtrack_v0.parallel_env(**kw), n_copies=3)
+    worlds = VectorSharedPolicyVecEnv(3, **kw)
+    assert worlds.num_envs == copies.num_envs == 9
+    assert worlds.observation_space == copies.observation_space
+    copies.seed(5)
+    worlds.seed(5)
+    np.testing.assert_array_equal(worlds.reset(), copies.reset())
+    rng = np.random.default_rng(0)
+    crashed = absorbing = 0
+    for _ in range(50):
+        act = rng.uniform(-1.0, 1.0, (9, 4)).astype(np.float32)
+        act[[0, 4], 1] = 1.0  # two UAVs dive: per-agent ends inside running worlds
+        o1, r1, d1, i1 = worlds.step(act)
+        o2, r2, d2, i2 = copies.step(act)
+        np.testing.assert_array_equal(o1, o2)
+        np.testing.assert_array_equal(r1, r2)
+        np.testing.assert_array_equal(d1, d2)
+        for a, b in zip(i1, i2, strict=True):
+            assert a.get("absorbing", False) == b.get("absorbing", False)
+            absorbing += a.get("absorbing", False)
+            if "terminal_observation" in b:
+                np.testing.assert_array_equal(a["terminal_observation"], b["terminal_observation"])
+                assert a["TimeLimit.truncated"] == b["TimeLimit.truncated"]
+            if "cost" in b:
+                assert a["cost"] == b["cost"] and a["violations"] == b["violations"]
+                crashed += b["violations"]["collision"]
+    assert crashed and (absorbing or terminate == "all")
+    worlds.close()
+    copies.close()
+
+
+def test_ppo_trains_on_the_vector_adapter():
+    vec = AgentVecMonitor(VectorSharedPolicyVecEnv(2, scenario="random", max_cycles=12))
+    vec.seed(0)
+    model = PPO("MlpPolicy", vec, n_steps=16, batch_size=48, n_epochs=1, seed=0, device="cpu")
+    model.learn(total_timesteps=96)
+    assert model.num_timesteps == 96
+    assert all(np.isfinite(p.detach().numpy()).all() for p in model.policy.parameters())
+    vec.close()

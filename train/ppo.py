@@ -6,10 +6,12 @@ or PPO-Lagrangian.
     python -m train.ppo --no-shield --lagrangian --cost-limit 1 --out runs/ppo-lag
     python -m train.ppo --timesteps 100000 --resume runs/ppo-shield     # 100k more steps
 
-One policy drives every UAV (each agent of each env copy is one row of
-`uavtrack_env.wrappers.sb3.SharedPolicyVecEnv`); with ``--shield`` every action passes the
-expert's CBF-QP (`CBFShield`) in training and in evaluation; with ``--lagrangian`` the cost is
-penalised by an adapted multiplier (`train.lagrangian`). Writes into DIR: ``tb/``
+One policy drives every UAV: each agent of each world is one row of an SB3 VecEnv
+(`uavtrack_env.wrappers.sb3`: `VectorSharedPolicyVecEnv`, all ``--n-envs`` worlds in one batched
+step, or, with ``--shield``, `SharedPolicyVecEnv` over shielded copies); with ``--shield`` every
+action passes the expert's CBF-QP (`CBFShield`) in training and in evaluation; with
+``--lagrangian`` the cost is penalised by an adapted multiplier (`train.lagrangian`). Writes
+into DIR: ``tb/``
 (TensorBoard: ``rollout/ep_cost_mean``, ``safety/*_rate``, ``lagrangian/lambda``),
 ``checkpoints/`` (every ``--checkpoint-freq`` agent-steps, with the VecNormalize statistics),
 ``model.zip`` + ``vecnormalize.pkl`` (final), ``args.json`` (every call's steps, time and
@@ -276,14 +278,25 @@ def env_fn(args: Args):
 
 
 def make_vec_env(args: Args, lambda_init: float = 0.0):
-    """SharedPolicyVecEnv -> AgentVecMonitor (-> LagrangianReward) (-> VecNormalize), seeded."""
+    """The rows' VecEnv -> AgentVecMonitor (-> LagrangianReward) (-> VecNormalize), seeded.
+
+    Unshielded: `VectorSharedPolicyVecEnv`, every world in one batched step; shielded:
+    `SharedPolicyVecEnv` over shielded ParallelEnvs (the onboard stacks step per UAV)."""
     from stable_baselines3.common.vec_env import VecNormalize
 
-    from uavtrack_env.wrappers.sb3 import AgentVecMonitor, SharedPolicyVecEnv
+    from uavtrack_env.wrappers.sb3 import (
+        AgentVecMonitor,
+        SharedPolicyVecEnv,
+        VectorSharedPolicyVecEnv,
+    )
 
     from .lagrangian import LagrangianReward
 
-    vec = AgentVecMonitor(SharedPolicyVecEnv(env_fn(args), n_copies=args.n_envs))
+    if args.shield:
+        rows = SharedPolicyVecEnv(env_fn(args), n_copies=args.n_envs)
+    else:
+        rows = VectorSharedPolicyVecEnv(args.n_envs, **world_settings(args))
+    vec = AgentVecMonitor(rows)
     if args.lagrangian:
         vec = LagrangianReward(vec, lagrangian_settings(args, lambda_init))
     if args.normalize:

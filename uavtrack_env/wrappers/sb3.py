@@ -34,7 +34,7 @@ import numpy as np
 from stable_baselines3.common.vec_env import VecEnv, VecMonitor
 from stable_baselines3.common.vec_env.base_vec_env import VecEnvIndices, VecEnvStepReturn
 
-__all__ = ["AgentVecMonitor", "SharedPolicyVecEnv"]
+__all__ = ["AgentVecMonitor", "SharedPolicyVecEnv", "VectorSharedPolicyVecEnv"]
 
 
 class SharedPolicyVecEnv(VecEnv):
@@ -221,6 +221,127 @@ class SharedPolicyVecEnv(VecEnv):
     def get_images(self) -> Sequence[np.ndarray | None]:
         """One frame per copy (not per row)."""
         return [env.render() for env in self.envs]
+
+
+class VectorSharedPolicyVecEnv(VecEnv):
+    """An SB3 VecEnv over `uavtrack_v0.vector_env`: the K worlds' n agents are the K n rows, in
+    the same order and with the same conventions as `SharedPolicyVecEnv` (module docstring), but
+    every step is one batched step of all worlds (`uavtrack_env.core`).
+
+    Each row's info holds the vector env's array infos of that row (``cost``, ``costs``,
+    ``reward_tracking``, ``reward_effort``, ``action_clipped``) and ``violations`` (the costs as
+    flags); not the ParallelEnv's nested per-agent dicts. ``**config`` as for ``vector_env``.
+    """
+
+    def __init__(self, num_worlds: int, **config: Any) -> None:
+        from uavtrack_env.vector import UAVTrackVectorEnv
+
+        self.vector = UAVTrackVectorEnv(num_worlds, **config)
+        v = self.vector
+        self.n_worlds, self.n_agents = v.num_envs, v.n_agents
+        obs_space = v.single_observation_space
+        self.absorbing_obs = np.clip(
+            np.zeros(obs_space.shape, obs_space.dtype), obs_space.low, obs_space.high
+        ).astype(obs_space.dtype)
+        super().__init__(self.n_worlds * self.n_agents, obs_space, v.single_action_space)
+        self._seed: int | None = None
+        self._live = np.zeros((self.n_worlds, self.n_agents), bool)
+        self._actions: np.ndarray | None = None
+
+    def seed(self, seed: int | None = None) -> Sequence[int | None]:
+        """The next reset seeds world k with ``seed + k``; returns the per-world list."""
+        if seed is None:
+            seed = int(np.random.randint(0, 2**32 - 1, dtype=np.uint32))  # noqa: NPY002
+        self._seed = int(seed)
+        return [self._seed + k for k in range(self.n_worlds)]
+
+    def reset(self) -> np.ndarray:
+        obs, _ = self.vector.reset(seed=self._seed)
+        self._seed = None
+        self._live[:] = True
+        self.reset_infos = [{} for _ in range(self.num_envs)]
+        self._reset_seeds()
+        self._reset_options()
+        return obs.reshape(self.num_envs, -1)
+
+    def step_async(self, actions: np.ndarray) -> None:
+        act = np.asarray(actions)
+        if act.shape[:1] != (self.num_envs,):
+            raise ValueError(
+                f"actions must have one row per world-agent: shape ({self.num_envs}, ...), "
+                f"got {act.shape}"
+            )
+        self._actions = act
+
+    def step_wait(self) -> VecEnvStepReturn:
+        if self._actions is None:
+            raise RuntimeError("step_wait() called without step_async(actions)")
+        shape = (self.n_worlds, self.n_agents)
+        actions, self._actions = self._actions.reshape(*shape, -1), None
+        obs, rew, term, trunc, info = self.vector.step(actions)
+        was_live = self._live
+        done = term | trunc
+        ended = info.get("_final_obs", np.zeros(self.n_worlds, bool))
+        last = np.where(ended[:, None, None], info.get("final_obs", obs), obs)
+        rows = np.zeros((*shape, obs.shape[-1]), obs.dtype)
+        rows[:] = np.where(was_live[..., None] & ~done[..., None], obs, self.absorbing_obs)
+        rows[ended] = obs[ended]  # the worlds that reset: their first observations
+        dones = (done & was_live) | (ended[:, None] & ~was_live)
+        infos: list[dict[str, Any]] = []
+        costs = info["costs"]
+        for k in range(self.n_worlds):
+            for j in range(self.n_agents):
+                if not was_live[k, j]:
+                    row = {"absorbing": True}
+                    if ended[k]:  # end of an absorbing chain: terminal, value 0
+                        row["terminal_observation"] = self.absorbing_obs.copy()
+                        row["TimeLimit.truncated"] = False
+                    infos.append(row)
+                    continue
+                c = {name: float(costs[name][k, j]) for name in costs}
+                row = {
+                    "cost": float(info["cost"][k, j]),
+                    "costs": c,
+                    "violations": {name: value > 0.0 for name, value in c.items()},
+                    "reward_tracking": float(info["reward_tracking"][k, j]),
+                    "reward_effort": float(info["reward_effort"][k, j]),
+                    "action_clipped": bool(info["action_clipped"][k, j]),
+                }
+                if done[k, j]:
+                    row["terminal_observation"] = last[k, j].copy()
+                    row["TimeLimit.truncated"] = bool(trunc[k, j] and not term[k, j])
+                infos.append(row)
+        self._live = (was_live & ~done) | ended[:, None]
+        rewards = np.where(was_live, rew, 0.0).astype(np.float32).reshape(-1)
+        return rows.reshape(self.num_envs, -1), rewards, dones.reshape(-1), infos
+
+    def close(self) -> None:
+        self.vector.close()
+
+    def _worlds(self, indices: VecEnvIndices) -> list[int]:
+        rows = [int(i) for i in self._get_indices(indices)]
+        bad = [i for i in rows if not 0 <= i < self.num_envs]
+        if bad:
+            raise ValueError(f"row indices {bad} out of range [0, {self.num_envs})")
+        return [i // self.n_agents for i in rows]
+
+    def get_attr(self, attr_name: str, indices: VecEnvIndices = None) -> list[Any]:
+        """The attribute of the world's ParallelEnv behind each row."""
+        return [getattr(self.vector.envs[k], attr_name) for k in self._worlds(indices)]
+
+    def set_attr(self, attr_name: str, value: Any, indices: VecEnvIndices = None) -> None:
+        raise NotImplementedError("the worlds of a vector env share one configuration")
+
+    def env_method(
+        self, method_name: str, *method_args, indices: VecEnvIndices = None, **method_kwargs
+    ) -> list[Any]:
+        raise NotImplementedError("step the worlds through the VecEnv, not their methods")
+
+    def env_is_wrapped(self, wrapper_class: type, indices: VecEnvIndices = None) -> list[bool]:
+        return [False] * len(self._worlds(indices))
+
+    def get_images(self) -> Sequence[np.ndarray | None]:
+        return [None] * self.n_worlds
 
 
 class AgentVecMonitor(VecMonitor):
