@@ -110,3 +110,36 @@ def test_collision_penalty_is_charged_once_on_the_colliding_step(make_env, shape
 def test_bad_reward_config_raises(kwargs, match):
     with pytest.raises(ValueError, match=match):
         RewardConfig(**kwargs)
+
+
+def _components_reference(dist: np.ndarray, alive: np.ndarray, r_c: float) -> bool:
+    """Connectivity of the alive UAVs by union-find (an independent reference)."""
+    idx = [i for i in range(len(alive)) if alive[i]]
+    parent = {i: i for i in idx}
+
+    def root(i: int) -> int:
+        while parent[i] != i:
+            i = parent[i]
+        return i
+
+    for a in idx:
+        for b in idx:
+            if dist[a, b] <= r_c:
+                parent[root(a)] = root(b)
+    return len({root(i) for i in idx}) <= 1
+
+
+def test_connectivity_of_many_graphs_matches_union_find():
+    from uavtrack_env.rewards import connected, connected_batch
+
+    rng = np.random.default_rng(0)
+    for n in (1, 2, 3, 5, 8, 13):
+        pts = rng.uniform(0.0, 10.0, (200, n, 3))
+        dist = np.linalg.norm(pts[:, :, None] - pts[:, None], axis=-1)
+        alive = rng.random((200, n)) < 0.8
+        got = connected_batch(dist, alive, 5.0)
+        want = [_components_reference(d, a, 5.0) for d, a in zip(dist, alive, strict=True)]
+        np.testing.assert_array_equal(got, want)
+        assert connected(dist[0], alive[0], 5.0) == want[0]
+        if n >= 5:
+            assert 0 < got.sum() < len(got)  # both outcomes occur

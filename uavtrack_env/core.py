@@ -18,7 +18,7 @@ import numpy as np
 from .config import DT, EnvConfig
 from .dynamics import integrate
 from .geometry import occlusion_angle, point_box_distance, world_to_cam_vec
-from .rewards import connected, effort_term, reward, tracking_term
+from .rewards import connected_batch, effort_term, reward, tracking_term
 from .scenarios import Layout
 from .sensors import Detections, Detector, receive_batch
 from .target import CAR_HALF_EXTENTS, TargetMotion
@@ -253,16 +253,13 @@ def score(
         cfg.reward,
     ).reshape(K, n)
     effort = effort_term(u.reshape(K * n, 4), cfg.reward).reshape(K, n)
-    r_c = cfg.comms.r_c
     return Score(
         tracking=tracking,
         effort=effort,
         reward=reward(tracking + effort, collided, cfg.reward),
         collided=collided,
         uav_too_close=too_close,
-        disconnected=np.array(
-            [not connected(d, a, r_c) for d, a in zip(m.distances, alive, strict=True)]
-        ),
+        disconnected=~connected_batch(m.distances, alive, cfg.comms.r_c),
         occluded=det.blocked_fraction > 1.0 - cfg.detector.min_visible_fraction,
     )
 

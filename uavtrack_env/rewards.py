@@ -54,14 +54,20 @@ def connected(dist: np.ndarray, alive: np.ndarray, r_c: float) -> bool:
 
     ``dist`` is the (n, n) matrix of inter-UAV distances.
     """
-    idx = np.flatnonzero(alive)
-    if len(idx) <= 1:
-        return True
-    adj = dist[np.ix_(idx, idx)] <= r_c
-    reach = adj[0].copy()
-    for _ in range(len(idx)):
-        grown = adj[reach].any(axis=0)
-        if np.array_equal(grown | reach, reach):
-            break
-        reach |= grown
-    return bool(reach.all())
+    return bool(connected_batch(dist[None], alive[None], r_c)[0])
+
+
+def connected_batch(dist: np.ndarray, alive: np.ndarray, r_c: float) -> np.ndarray:
+    """`connected` of K graphs at once: dist (K, n, n), alive (K, n) -> (K,) bool.
+
+    The reachability of every pair by repeated squaring of the adjacency (self-loops included);
+    connected when every two alive UAVs reach each other (one or none alive: connected)."""
+    n = dist.shape[-1]
+    pairs = alive[:, :, None] & alive[:, None, :]
+    reach = ((dist <= r_c) & pairs) | np.eye(n, dtype=bool)
+    hops = 1
+    while hops < n - 1:
+        r = reach.astype(np.int64)
+        reach = (r @ r) > 0
+        hops *= 2
+    return (reach | ~pairs).all(axis=(1, 2))

@@ -219,12 +219,13 @@ class Detector:
         sp = slice(1, 1 + s)
         pu, pv = proj.pu[:, sp], proj.pv[:, sp]
         in_image = proj.front[:, sp] & (pu >= 0) & (pu < cam.width) & (pv >= 0) & (pv < cam.height)
+        # every UAV's rays to its world's samples, world by world: (K n s, 3)
+        starts = np.repeat(positions, s, axis=0)
+        ends = np.broadcast_to(samples[:, None], (len(worlds), n, s, 3)).reshape(-1, 3)
+        r = n * s
         reach = np.concatenate(
             [
-                world.rays_reach_target(
-                    np.repeat(positions[k * n : (k + 1) * n], s, axis=0),
-                    np.tile(samples[k], (n, 1)),
-                )
+                world.rays_reach_target(starts[k * r : (k + 1) * r], ends[k * r : (k + 1) * r])
                 for k, world in enumerate(worlds)
             ]
         ).reshape(-1, s)

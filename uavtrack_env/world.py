@@ -133,8 +133,11 @@ class World:
         """For each ray, whether the first body it hits is the target: bool (R,)."""
         if len(starts) == 0:
             return np.zeros(0, bool)
-        out = p.rayTestBatch(starts.tolist(), ends.tolist(), numThreads=1, physicsClientId=self.cid)
-        return np.fromiter((r[0] == self.target_id for r in out), bool, len(out))
+        # float64 (R, 3) arrays go to PyBullet as they are (faster than lists of lists)
+        starts = np.ascontiguousarray(starts, dtype=np.float64)
+        ends = np.ascontiguousarray(ends, dtype=np.float64)
+        out = p.rayTestBatch(starts, ends, numThreads=1, physicsClientId=self.cid)
+        return np.array([r[0] for r in out]) == self.target_id
 
     def camera_image(
         self,
