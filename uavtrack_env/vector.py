@@ -27,6 +27,12 @@ world's ParallelEnv info dicts of the step, and for a world that reset, its rese
 
 World k behaves exactly as ``parallel_env(**config)`` reset with seed s + k and given the same
 actions: same observations, rewards, terminations and infos (tested).
+
+**Speed**: a step is one batched step of all worlds (`uavtrack_env.core`, the arithmetic the
+ParallelEnv runs with K = 1); each world keeps its own PyBullet client, car and random stream.
+With ``full_infos=True`` the worlds step one by one through their ParallelEnvs instead (the same
+arrays, bit for bit, tested), so that each can build its info dicts. SB3:
+`uavtrack_env.wrappers.sb3.VectorSharedPolicyVecEnv`.
 """
 
 from __future__ import annotations
