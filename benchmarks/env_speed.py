@@ -4,7 +4,7 @@
 
 Prints, per team size, the median over repeats of steps/s, agent-steps/s and us per agent-step,
 the real-time factor at 80 Hz and the per-agent cost relative to n = 3; then the same for
-``vector_env(num_envs=K)`` at n = 3 (array infos, autoreset) beside the ParallelEnv.
+``vector_env(num_envs=K)`` at each ``--vector-n`` (array infos, autoreset) beside the ParallelEnv.
 """
 
 from __future__ import annotations
@@ -39,10 +39,14 @@ def steps_per_second(n: int, steps: int, seed: int) -> float:
     return steps / elapsed
 
 
-def vector_agent_steps_per_second(k: int, steps: int, seed: int) -> float:
-    """Agent-steps/s of ``vector_env(num_envs=k)`` at n = 3 (rows that took part in a step)."""
+def vector_agent_steps_per_second(k: int, steps: int, seed: int, n: int = 3) -> float:
+    """Agent-steps/s of ``vector_env(num_envs=k)`` with n UAVs (rows that took part in a step)."""
     env = uavtrack_v0.vector_env(
-        k, scenario="random", max_cycles=MAX_EPISODE_STEPS, terminate_on_collision="agent"
+        k,
+        scenario="random",
+        n_uavs=n,
+        max_cycles=MAX_EPISODE_STEPS,
+        terminate_on_collision="agent",
     )
     rng = np.random.default_rng(seed)
     env.reset(seed=seed)
@@ -63,6 +67,9 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--n", type=int, nargs="+", default=[3, 10, 30])
     ap.add_argument("--vector", type=int, default=64, help="worlds of the vector_env (0: skip)")
+    ap.add_argument(
+        "--vector-n", type=int, nargs="+", default=[3, 30], help="UAVs per vector_env world"
+    )
     args = ap.parse_args()
     print(
         f"machine: {platform.processor() or platform.machine()}, python {platform.python_version()}"
@@ -83,15 +90,19 @@ def main() -> None:
         )
     if args.vector:
         k = args.vector
-        vec = statistics.median(
-            vector_agent_steps_per_second(k, max(1, args.steps // k), seed)
-            for seed in range(args.repeats)
-        )
         par = statistics.median(3 * steps_per_second(3, args.steps, s) for s in range(args.repeats))
-        print(
-            f"vector_env(num_envs={k}), n = 3: {vec:.0f} agent-steps/s ({1e6 / vec:.1f} us per "
-            f"agent-step) vs ParallelEnv {par:.0f}: ratio {vec / par:.2f}"
-        )
+        base = None
+        for n in args.vector_n:
+            vec = statistics.median(
+                vector_agent_steps_per_second(k, max(1, 3 * args.steps // (k * n)), seed, n)
+                for seed in range(args.repeats)
+            )
+            base = base or 1e6 / vec
+            print(
+                f"vector_env(num_envs={k}), n = {n}: {vec:.0f} agent-steps/s ({1e6 / vec:.1f} us "
+                f"per agent-step, {1e6 / vec / base:.2f} x n = {args.vector_n[0]}'s); "
+                f"ParallelEnv n = 3: {par:.0f}, ratio {vec / par:.2f}"
+            )
 
 
 if __name__ == "__main__":
