@@ -44,6 +44,11 @@ class Obstacles:
     counts: tuple[int, ...]
     """Real obstacles per world (they come first)."""
 
+    @property
+    def padded(self) -> bool:
+        """Some world has padding (fewer obstacles than the most cluttered one)."""
+        return min(self.counts) < self.present.shape[1]
+
     @classmethod
     def stack(cls, layouts: Sequence[Layout]) -> Obstacles:
         counts = tuple(len(lay.obstacle_centers) for lay in layouts)
@@ -144,11 +149,8 @@ def simulate(
 
     ``state`` = (position (K, n, 3), yaw (K, n), velocity (K, n, 3), yaw rate (K, n));
     returns the new state and the applied u."""
-    K, n = alive.shape
     u = np.where(alive[..., None], u, 0.0)
-    position, yaw, velocity, yaw_rate = (x.reshape(K * n, *x.shape[2:]) for x in state)
-    new = integrate(position, yaw, velocity, yaw_rate, u.reshape(K * n, 4), cfg.dynamics, DT)
-    position, yaw, velocity, yaw_rate = (x.reshape(K, n, *x.shape[1:]) for x in new)
+    position, yaw, velocity, yaw_rate = integrate(*state, u, cfg.dynamics, DT)
     for k, (world, target) in enumerate(zip(worlds, targets, strict=True)):
         target.step(DT)
         world.set_poses(position[k], yaw[k], alive[k], target.center(), target.heading)
@@ -176,10 +178,10 @@ def sense(
     pair = np.linalg.norm(position[:, :, None] - position[:, None], axis=-1)
     received = receive_batch(pair, alive, cfg.comms, list(rngs))
     per_world = [world.contacts(n) for world in worlds]
-    hits = {key: np.stack([h[key] for h in per_world]) for key in per_world[0]}
+    hits = {key: np.array([h[key] for h in per_world]) for key in per_world[0]}
 
     both = alive[:, :, None] & alive[:, None, :]
-    both[:, np.arange(n), np.arange(n)] = False
+    both.reshape(K, n * n)[:, :: n + 1] = False  # the diagonals
     dist = np.where(both, pair, np.inf)
     clearance = _box_distance(position, obstacles) - cfg.uav_radius
     theta, in_noi = _occlusion(position, centers, obstacles)
@@ -207,7 +209,7 @@ def _box_distance(position: np.ndarray, obstacles: Obstacles) -> np.ndarray:
         - obstacles.half_extents[:, None]
     )
     dist = np.linalg.norm(np.maximum(d, 0.0), axis=-1)
-    return np.where(obstacles.present[:, None], dist, np.inf)
+    return np.where(obstacles.present[:, None], dist, np.inf) if obstacles.padded else dist
 
 
 def _occlusion(
@@ -219,7 +221,7 @@ def _occlusion(
     theta = occlusion_angle(position[:, :, None], centers[:, None], n_vec[:, :, None])
     d_obs = np.linalg.norm(centers[:, None] - position[:, :, None], axis=-1)
     in_noi = d_obs <= np.linalg.norm(n_vec, axis=-1)[..., None]
-    return theta, in_noi & obstacles.present[:, None]
+    return theta, (in_noi & obstacles.present[:, None]) if obstacles.padded else in_noi
 
 
 def _target_clearance(
@@ -333,8 +335,9 @@ def _neighbour_block(
     k = cfg.n_neighbours
     d = np.where(received, pair, np.inf)
     order = np.argsort(d, axis=-1, kind="stable")[..., :k]
-    rel = position[np.arange(K)[:, None, None], order] - position[:, :, None]
-    mask = np.isfinite(np.take_along_axis(d, order, -1))
+    world, me = np.arange(K)[:, None, None], np.arange(n)[None, :, None]
+    rel = position[world, order] - position[:, :, None]
+    mask = np.isfinite(d[world, me, order])
     rel = world_to_cam_vec(rel, yaw[..., None]) * mask[..., None]
     nb = np.concatenate([rel, mask[..., None]], -1)
     if nb.shape[2] < k:
@@ -363,7 +366,8 @@ def _obstacle_block(
         ],
         -1,
     )
-    ob = np.where(obstacles.present[world, order][..., None], ob, 0.0)
+    if obstacles.padded:
+        ob = np.where(obstacles.present[world, order][..., None], ob, 0.0)
     if M < k:
         ob = np.concatenate([ob, np.zeros((K, n, k - M, OBSTACLE_FIELDS))], 2)
     return ob.reshape(K, n, -1)

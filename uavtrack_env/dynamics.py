@@ -14,7 +14,7 @@ from .geometry import cam_to_world_vec, wrap_angle
 
 def commanded_rates(u: np.ndarray, yaw: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Global velocity (n, 3) and yaw rate (n,) that command u (n, 4) asks for, eq. (3)."""
-    return cam_to_world_vec(u[:, :3], yaw), -u[:, 3]
+    return cam_to_world_vec(u[..., :3], yaw), -u[..., 3]
 
 
 def integrate(
@@ -37,7 +37,7 @@ def integrate(
         velocity, yaw_rate = v_cmd, w_cmd
     else:
         accel = (v_cmd - velocity) / cfg.tau
-        norm = np.linalg.norm(accel, axis=1, keepdims=True)
+        norm = np.linalg.norm(accel, axis=-1, keepdims=True)
         accel *= np.minimum(1.0, cfg.a_max / np.maximum(norm, 1e-12))
         velocity = velocity + accel * dt
         yaw_rate = yaw_rate + (w_cmd - yaw_rate) * min(1.0, dt / cfg.yaw_tau)

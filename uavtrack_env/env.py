@@ -304,8 +304,11 @@ class UAVTrackEnv(ParallelEnv):
         return m, self._score(m, u)
 
     def _view(self, m: Measurements, score: Score) -> tuple[Measurements, Score]:
-        """This world's measurements and score from its batch of one."""
-        return m.world(0, self._obstacles.counts[0]), score.world(0)
+        """This world's measurements and score from its batch of one (and its detections as
+        ``last_detection``)."""
+        view = m.world(0, self._obstacles.counts[0])
+        self.last_detection = view.detections
+        return view, score.world(0)
 
     def validate_actions(self, actions: dict[str, Any]) -> tuple[np.ndarray, np.ndarray]:
         """Check a step's actions without changing anything.
@@ -388,7 +391,6 @@ class UAVTrackEnv(ParallelEnv):
             self.config, self.detector, [self.world], [self.target], [self.np_random],
             self._obstacles, self.position[None], self.yaw[None], self.alive[None],
         )  # fmt: skip
-        self.last_detection = m.detections.world(0)
         return m
 
     # ------------------------------------------------------------------ score

@@ -51,11 +51,20 @@ class Detections:
 
     def copy(self) -> Detections:
         """A deep copy (every array copied)."""
-        return Detections(**{f.name: getattr(self, f.name).copy() for f in fields(self)})
+        return Detections(*[getattr(self, name).copy() for name in _DETECTION_FIELDS])
 
     def world(self, k: int) -> Detections:
         """World k of a batch (`Detector.detect_batch`, arrays (K, n, ...)): views (n, ...)."""
-        return Detections(**{f.name: getattr(self, f.name)[k] for f in fields(self)})
+        return Detections(*[getattr(self, name)[k] for name in _DETECTION_FIELDS])
+
+    def batch(self, K: int, n: int) -> Detections:
+        """These (K n, ...) arrays as a batch of K worlds (K, n, ...) (views)."""
+        return Detections(
+            *[(a := getattr(self, name)).reshape(K, n, *a.shape[1:]) for name in _DETECTION_FIELDS]
+        )
+
+
+_DETECTION_FIELDS = tuple(f.name for f in fields(Detections))
 
 
 @dataclass(frozen=True)
@@ -109,8 +118,12 @@ def _to_world(local: np.ndarray, centers: np.ndarray, yaws: np.ndarray) -> np.nd
     """Points (P, 3) of a body frame in the global frame of K bodies: (K, P, 3)."""
     c, s = np.cos(yaws)[:, None], np.sin(yaws)[:, None]
     x, y = local[:, 0], local[:, 1]
-    z = np.broadcast_to(local[:, 2], c.shape[:1] + local.shape[:1])
-    return np.stack([c * x - s * y, s * x + c * y, z], -1) + centers[:, None]
+    out = np.empty((len(yaws), *local.shape))
+    out[..., 0] = c * x - s * y
+    out[..., 1] = s * x + c * y
+    out[..., 2] = local[:, 2]
+    out += centers[:, None]
+    return out
 
 
 class Detector:
@@ -163,10 +176,10 @@ class Detector:
         K, n = yaws.shape
         points = _to_world(self._local, target_centers, target_yaws)  # (K, P, 3)
         pos, yaw = positions.reshape(K * n, 3), yaws.reshape(K * n)
-        proj = self._project(np.repeat(points, n, axis=0), pos, yaw)
+        proj = self._project(points, positions, yaw)
         z0 = np.where(np.abs(proj.Z[:, 0]) < 1e-9, 1e-9, proj.Z[:, 0])
-        psi = relative_angle(
-            pos, np.repeat(target_centers, n, axis=0), np.repeat(target_headings, n)
+        psi = relative_angle(positions, target_centers[:, None], target_headings[:, None]).reshape(
+            K * n
         )
         true = np.column_stack([proj.X[:, 0] / z0, proj.Y[:, 0] / z0, 1.0 / z0, psi])
         visible, blocked = self._visibility(worlds, pos, points[:, 1 : 1 + s], proj)
@@ -191,16 +204,14 @@ class Detector:
                 ]
             ),
         )
-        return Detections(
-            **{f.name: getattr(det, f.name).reshape(K, n, *getattr(det, f.name).shape[1:])
-               for f in fields(det)}
-        )  # fmt: skip
+        return det.batch(K, n)
 
     def _project(self, points: np.ndarray, positions: np.ndarray, yaws: np.ndarray) -> _Projection:
-        """Camera-frame coordinates and pixels of the target points (B, P, 3) seen by the B
-        UAVs (one row of points per UAV)."""
+        """Camera-frame coordinates and pixels of each world's target points (K, P, 3) seen by
+        its UAVs (positions (K, n, 3), yaws (K n,)): arrays (K n, P)."""
         cam = self.camera
-        d = points - positions[:, None]  # (B, P, 3)
+        K, n, P = len(points), positions.shape[1], points.shape[1]
+        d = (points[:, None] - positions[:, :, None]).reshape(K * n, P, 3)
         c, sn = np.cos(yaws)[:, None], np.sin(yaws)[:, None]
         X = sn * d[..., 0] - c * d[..., 1]  # camera frame, see geometry.world_to_cam_vec
         Y = -d[..., 2]
@@ -221,7 +232,7 @@ class Detector:
         in_image = proj.front[:, sp] & (pu >= 0) & (pu < cam.width) & (pv >= 0) & (pv < cam.height)
         # every UAV's rays to its world's samples, world by world: (K n s, 3)
         starts = np.repeat(positions, s, axis=0)
-        ends = np.broadcast_to(samples[:, None], (len(worlds), n, s, 3)).reshape(-1, 3)
+        ends = np.repeat(samples, n, axis=0).reshape(-1, 3)
         r = n * s
         reach = np.concatenate(
             [
@@ -291,7 +302,7 @@ def receive_batch(
 ) -> np.ndarray:
     """`receive_positions` for K worlds: dist (K, n, n), alive (K, n) -> (K, n, n)."""
     n = dist.shape[-1]
-    lost = np.stack([rng.random((n, n)) for rng in rngs]) < cfg.drop_prob
+    lost = np.array([rng.random((n, n)) for rng in rngs]) < cfg.drop_prob
     received = (dist <= cfg.r_c) & ~lost & alive[:, :, None] & alive[:, None, :]
-    received[:, np.arange(n), np.arange(n)] = False
+    received.reshape(len(rngs), n * n)[:, :: n + 1] = False  # the diagonals
     return received
