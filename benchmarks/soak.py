@@ -2,11 +2,14 @@
 
 Phase 1 steps one ParallelEnv (random world, n = 3, random actions) for ``--steps`` steps over
 ``--resets`` episodes, checking that every observation, reward and info value is finite, and
-prints the process's resident memory (RSS) after the first episode and at the end. Phase 2
-creates and closes ``--envs`` envs (and drops as many unclosed ones for the garbage collector)
-and counts the PyBullet clients still connected.
+prints the process's resident memory (RSS) after the first episode and at the end. Phase 2 does
+the same for ``vector_env(num_envs=16)`` (random actions in [-1.2, 1.2], 200-step episodes, so
+its worlds reset themselves many times) for ``--vector-steps`` agent-steps. Phase 3 creates and
+closes ``--envs`` envs (and drops as many unclosed ones for the garbage collector) and counts the
+PyBullet clients still connected.
 
-Run: python benchmarks/soak.py [--steps 1000000] [--resets 1000] [--envs 500]
+Run: python benchmarks/soak.py [--steps 1000000] [--resets 1000] [--vector-steps 1000000]
+[--envs 500]
 """
 
 from __future__ import annotations
@@ -69,6 +72,34 @@ def soak_steps(steps: int, resets: int, seed: int) -> None:
     )
 
 
+def soak_vector(agent_steps: int, seed: int, worlds: int = 16) -> None:
+    env = uavtrack_v0.vector_env(
+        worlds, scenario="random", max_cycles=200, terminate_on_collision="agent"
+    )
+    rng = np.random.default_rng(seed)
+    env.reset(seed=seed)
+    rss0, done, resets, t0 = None, 0, 0, time.perf_counter()
+    with tqdm(total=agent_steps, unit="agent-step") as bar:
+        while done < agent_steps:
+            a = rng.uniform(-1.2, 1.2, env.action_space.shape)
+            obs, rewards, _te, _tr, infos = env.step(a)
+            if not (_finite(obs) and _finite(rewards) and _finite(infos)):
+                raise RuntimeError(f"a non-finite value after {done} agent-steps")
+            rows = int(infos["active"].sum())
+            done += rows
+            resets += int(infos.get("_final_obs", np.zeros(1, bool)).sum())
+            bar.update(rows)
+            if rss0 is None and resets:
+                rss0 = _rss_mb()
+    env.close()
+    wall = time.perf_counter() - t0
+    print(
+        f"vector_env({worlds}): {done} agent-steps, {resets} world resets in {wall:.0f} s "
+        f"({done / wall:.0f} agent-steps/s); RSS after the first reset {rss0:.1f} MB, at the "
+        f"end {_rss_mb():.1f} MB (growth {_rss_mb() - rss0:+.1f} MB)"
+    )
+
+
 def soak_clients(envs: int) -> None:
     cids = []
     for k in range(envs):
@@ -88,10 +119,12 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--steps", type=int, default=1_000_000)
     ap.add_argument("--resets", type=int, default=1000)
+    ap.add_argument("--vector-steps", type=int, default=1_000_000)
     ap.add_argument("--envs", type=int, default=500)
     ap.add_argument("--seed", type=int, default=0)
     args = ap.parse_args()
     soak_steps(args.steps, args.resets, args.seed)
+    soak_vector(args.vector_steps, args.seed)
     soak_clients(args.envs)
 
 

@@ -203,3 +203,19 @@ def test_step_before_reset_and_bad_construction(vec):
         uavtrack_v0.vector_env(2.5)
     with pytest.raises(TypeError, match="unknown argument"):
         uavtrack_v0.vector_env(2, n_drones=3)
+
+
+def test_short_soak_every_value_finite_and_inside_the_space(vec):
+    """Many autoresets of the batched step (the full soak: benchmarks/soak.py)."""
+    v = vec(4, max_cycles=15, n_uavs=4)
+    obs, _ = v.reset(seed=7)
+    rng = np.random.default_rng(7)
+    resets = 0
+    for _ in range(150):
+        obs, rewards, _t, _tr, infos = v.step(rng.uniform(-3.0, 3.0, v.action_space.shape))
+        assert v.observation_space.contains(obs)
+        assert np.isfinite(rewards).all()
+        for key in ("cost", "reward_tracking", "reward_effort"):
+            assert np.isfinite(infos[key]).all()
+        resets += int(infos.get("_final_obs", np.zeros(4, bool)).sum())
+    assert resets >= 4 * 9  # every world ended its 15-step episode at least 9 times
