@@ -172,13 +172,17 @@ def sense(
     (K, n)); each world draws from its generator in a fixed order: the detector, then the
     comms."""
     K, n = alive.shape
-    centers = np.array([t.center() for t in targets], float)
+    centers = np.empty((K, 3))  # filled row by row: np.array of a list of arrays is slow
+    for k, target in enumerate(targets):
+        centers[k] = target.center()
     headings = np.array([t.heading for t in targets], float)
     det = detector.detect_batch(list(worlds), position, yaw, centers, headings, headings, rngs)
     pair = np.linalg.norm(position[:, :, None] - position[:, None], axis=-1)
     received = receive_batch(pair, alive, cfg.comms, list(rngs))
-    per_world = [world.contacts(n) for world in worlds]
-    hits = {key: np.array([h[key] for h in per_world]) for key in per_world[0]}
+    hits = {key: np.empty((K, n), bool) for key in ("ground", "obstacle", "target")}
+    for k, world in enumerate(worlds):
+        for key, hit in world.contacts(n).items():
+            hits[key][k] = hit
 
     both = alive[:, :, None] & alive[:, None, :]
     both.reshape(K, n * n)[:, :: n + 1] = False  # the diagonals

@@ -302,7 +302,10 @@ def receive_batch(
 ) -> np.ndarray:
     """`receive_positions` for K worlds: dist (K, n, n), alive (K, n) -> (K, n, n)."""
     n = dist.shape[-1]
-    lost = np.array([rng.random((n, n)) for rng in rngs]) < cfg.drop_prob
+    draws = np.empty((len(rngs), n, n))
+    for k, rng in enumerate(rngs):
+        draws[k] = rng.random((n, n))
+    lost = draws < cfg.drop_prob
     received = (dist <= cfg.r_c) & ~lost & alive[:, :, None] & alive[:, None, :]
     received.reshape(len(rngs), n * n)[:, :: n + 1] = False  # the diagonals
     return received
