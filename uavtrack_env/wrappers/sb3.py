@@ -37,6 +37,21 @@ from stable_baselines3.common.vec_env.base_vec_env import VecEnvIndices, VecEnvS
 __all__ = ["AgentVecMonitor", "SharedPolicyVecEnv", "VectorSharedPolicyVecEnv"]
 
 
+def _absorbing_obs(space: gymnasium.spaces.Box) -> np.ndarray:
+    """The observation of a finished agent's row: zeros clipped into the space."""
+    return np.clip(np.zeros(space.shape, space.dtype), space.low, space.high).astype(space.dtype)
+
+
+def _one_per_row(actions: np.ndarray, rows: int) -> np.ndarray:
+    """``actions`` as an array with one row per VecEnv row; ValueError otherwise."""
+    act = np.asarray(actions)
+    if act.shape[:1] != (rows,):
+        raise ValueError(
+            f"actions must have one row per agent: shape ({rows}, ...), got {act.shape}"
+        )
+    return act
+
+
 class SharedPolicyVecEnv(VecEnv):
     """An SB3 VecEnv over ``n_copies`` copies of a PettingZoo ParallelEnv, one row per agent.
 
@@ -70,9 +85,7 @@ class SharedPolicyVecEnv(VecEnv):
             raise ValueError(f"observation space must be a Box, got {obs_space}")
         self.n_copies = n_copies
         self.n_agents = len(self.possible_agents)
-        self.absorbing_obs = np.clip(
-            np.zeros(obs_space.shape, obs_space.dtype), obs_space.low, obs_space.high
-        ).astype(obs_space.dtype)
+        self.absorbing_obs = _absorbing_obs(obs_space)
         super().__init__(n_copies * self.n_agents, obs_space, act_space)
         self._copy_seeds: list[int | None] = [None] * n_copies
         self._live = np.zeros((n_copies, self.n_agents), bool)
@@ -127,13 +140,7 @@ class SharedPolicyVecEnv(VecEnv):
 
     # ------------------------------------------------------------------- step
     def step_async(self, actions: np.ndarray) -> None:
-        act = np.asarray(actions)
-        if act.shape[:1] != (self.num_envs,):
-            raise ValueError(
-                f"actions must have one row per agent-copy: shape ({self.num_envs}, ...), "
-                f"got {act.shape}"
-            )
-        self._actions = act
+        self._actions = _one_per_row(actions, self.num_envs)
 
     def step_wait(self) -> VecEnvStepReturn:
         if self._actions is None:
@@ -240,9 +247,7 @@ class VectorSharedPolicyVecEnv(VecEnv):
         v = self.vector
         self.n_worlds, self.n_agents = v.num_envs, v.n_agents
         obs_space = v.single_observation_space
-        self.absorbing_obs = np.clip(
-            np.zeros(obs_space.shape, obs_space.dtype), obs_space.low, obs_space.high
-        ).astype(obs_space.dtype)
+        self.absorbing_obs = _absorbing_obs(obs_space)
         super().__init__(self.n_worlds * self.n_agents, obs_space, v.single_action_space)
         self._seed: int | None = None
         self._live = np.zeros((self.n_worlds, self.n_agents), bool)
@@ -265,13 +270,7 @@ class VectorSharedPolicyVecEnv(VecEnv):
         return obs.reshape(self.num_envs, -1)
 
     def step_async(self, actions: np.ndarray) -> None:
-        act = np.asarray(actions)
-        if act.shape[:1] != (self.num_envs,):
-            raise ValueError(
-                f"actions must have one row per world-agent: shape ({self.num_envs}, ...), "
-                f"got {act.shape}"
-            )
-        self._actions = act
+        self._actions = _one_per_row(actions, self.num_envs)
 
     def step_wait(self) -> VecEnvStepReturn:
         if self._actions is None:
