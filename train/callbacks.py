@@ -2,7 +2,7 @@
 budget and the progress bar.
 
 Rates are per agent-step of one rollout (a violation rate of 0.002 is 2 violating agent-steps
-per 1,000); episode returns and costs are per agent (one row of `SharedPolicyVecEnv`).
+per 1,000); episode returns and costs are per agent (one VecEnv row).
 """
 
 from __future__ import annotations

@@ -93,12 +93,12 @@ class Args:
         default=(), metadata={"help": "FIELD=VALUE overrides of the preset (repeatable)"}
     )
     timesteps: int = field(default=200_000, metadata={"help": "agent-steps to train (this call)"})
-    seed: int = field(default=0, metadata={"help": "seed of torch, numpy and the env copies"})
+    seed: int = field(default=0, metadata={"help": "seed of torch, numpy and the worlds"})
     out: Path | None = field(default=None, metadata={"help": "output dir (default: --resume)"})
     resume: Path | None = field(
         default=None, metadata={"help": "continue the run in DIR from its last checkpoint"}
     )
-    n_envs: int = field(default=4, metadata={"help": "env copies (rows = copies x n_uavs)"})
+    n_envs: int = field(default=4, metadata={"help": "worlds (rows = worlds x n_uavs)"})
     n_uavs: int = field(default=TrainingWorld.n_uavs, metadata=_WORLD_HELP["n_uavs"])
     max_cycles: int = field(default=TrainingWorld.max_cycles, metadata=_WORLD_HELP["max_cycles"])
     terminate_on_collision: str = field(
