@@ -107,7 +107,7 @@ class UAVTrackVectorEnv:
             per_world.append(info)
         self._obstacles = Obstacles.stack([env.layout for env in self.envs])
         self._started = True
-        return obs, self._stack(per_world)
+        return obs, self._concat(per_world)
 
     def _load(self, k: int) -> None:
         """Take world k's state from its env (after its reset, or a step of it)."""
@@ -127,18 +127,19 @@ class UAVTrackVectorEnv:
         self._load(k)
         return np.stack([obs[a] for a in self.possible_agents]), self._reset_info(env, infos)
 
-    def _reset_info(self, env: UAVTrackEnv, infos: dict) -> dict[str, np.ndarray]:
+    def _reset_info(self, env: UAVTrackEnv, infos: dict) -> dict[str, Any]:
+        """One world's reset infos as arrays (1, n) (and its info dicts with ``full_infos``)."""
         rows = [infos[a] for a in self.possible_agents]
         out = {
-            "cost": np.array([r["cost"] for r in rows]),
-            "costs": {v: np.array([r["costs"][v] for r in rows]) for v in VIOLATIONS},
-            "reward_tracking": np.array([r["reward_tracking"] for r in rows]),
-            "reward_effort": np.array([r["reward_effort"] for r in rows]),
-            "action_clipped": np.zeros(self.n_agents, bool),
-            "active": np.ones(self.n_agents, bool),
+            "cost": np.array([[r["cost"] for r in rows]]),
+            "costs": {v: np.array([[r["costs"][v] for r in rows]]) for v in VIOLATIONS},
+            "reward_tracking": np.array([[r["reward_tracking"] for r in rows]]),
+            "reward_effort": np.array([[r["reward_effort"] for r in rows]]),
+            "action_clipped": np.zeros((1, self.n_agents), bool),
+            "active": np.ones((1, self.n_agents), bool),
         }
         if self.full_infos:
-            out["agents"] = infos
+            out["agents"] = [infos]
         return out
 
     # ------------------------------------------------------------------- step
@@ -161,7 +162,7 @@ class UAVTrackVectorEnv:
             reset_infos: list[Any] = [None] * self.num_envs
             for k in np.flatnonzero(ended):
                 obs[k], reset_info = self._reset_world(k, None, None)
-                reset_infos[k] = reset_info.get("agents")
+                reset_infos[k] = reset_info.get("agents", [None])[0]
             self._obstacles = Obstacles.stack([env.layout for env in self.envs])
             if self.full_infos:
                 infos["reset_infos"] = reset_infos
@@ -254,18 +255,6 @@ class UAVTrackVectorEnv:
                 out[key] = {v: np.concatenate([w[key][v] for w in per_world]) for v in value}
             else:
                 out[key] = np.concatenate([w[key] for w in per_world])
-        return out
-
-    def _stack(self, per_world: list[dict[str, Any]]) -> dict[str, Any]:
-        """World-major arrays (K, n) from each world's (n,) arrays."""
-        out: dict[str, Any] = {}
-        for key, value in per_world[0].items():
-            if key == "agents":
-                out[key] = [w[key] for w in per_world]
-            elif isinstance(value, dict):
-                out[key] = {v: np.stack([w[key][v] for w in per_world]) for v in value}
-            else:
-                out[key] = np.stack([w[key] for w in per_world])
         return out
 
     def _checked(self, actions: Any) -> tuple[np.ndarray, np.ndarray]:
