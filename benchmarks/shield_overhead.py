@@ -9,8 +9,9 @@ single-threaded BLAS. The shield's cost per agent-step is split into
 * ukf: the team's UKF step that gives the shield its target estimates (`step_team`, one batched
   pass for all agents), per agent-step;
 * observe: the UKF plus the team-mates' messages and the safety context, per agent-step;
-* own: the wrapper's own time per agent-step (its step minus the env's step inside it): the
-  shield's cost, estimator included, amortised over a step of all agents;
+* own: the wrapper's own time per agent-step (its step minus the env's step inside it, i.e.
+  the env's action validation and its checked step, both of which a bare ``env.step`` runs):
+  the shield's cost, estimator included, amortised over a step of all agents;
 * total: shielded minus bare time per agent-step, everything the wrapper adds (own, plus the
   env's step costing more when the shield keeps UAVs alive that random actions would crash).
 
@@ -64,6 +65,7 @@ def run(shield: bool, amplitude: float, steps: int, seed: int) -> dict[str, np.n
         "ukf": [],
         "observe": [],
         "env": [],
+        "validate": [],
         "active": [],
         "agents": [],
     }
@@ -81,6 +83,7 @@ def run(shield: bool, amplitude: float, steps: int, seed: int) -> dict[str, np.n
             env.certify = _timed(env.certify, times["certify"])
             env._observe = _timed(env._observe, times["observe"])
             raw._step_checked = _timed(raw._step_checked, times["env"])
+            raw.validate_actions = _timed(raw.validate_actions, times["validate"])
         while env.agents and done < steps:
             actions = {a: amplitude * rng.uniform(-1.0, 1.0, 4) for a in env.agents}
             times["agents"].append(len(actions))
@@ -120,7 +123,8 @@ def main() -> None:
             ukf.append(np.median(shielded["ukf"]) / N_UAVS)
             obs.append(np.median(shielded["observe"]) / N_UAVS)
             act.append(shielded["active"].mean())
-            own_time = shielded["step"].sum() - shielded["env"].sum()
+            env_time = shielded["env"].sum() + shielded["validate"].sum()
+            own_time = shielded["step"].sum() - env_time
             own.append(own_time / shielded["agents"].sum())
         b, s = np.median(bare_t), np.median(shield_t)
         ba, sa = np.median(bare_a), np.median(shield_a)

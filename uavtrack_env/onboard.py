@@ -336,6 +336,10 @@ class OnboardAgent:
         """The safe camera-frame command (SI units) closest to ``u_nominal``, and a report."""
         return self.filter.certify(u_nominal, self.context(), self.rows())
 
+    def certify_trusted(self, u: np.ndarray) -> tuple[np.ndarray, ShieldReport]:
+        """`certify` without checks (`SafetyFilter.certify_trusted`)."""
+        return self.filter.certify_trusted(u, self.context(), self.rows())
+
     def _make_context(self, info: dict, belief: NeighbourBelief) -> SafetyContext:
         """The CBF-QP's view: own pose and velocity, the team-mates as believed (and, for
         second-order rows, their velocities), the known obstacles, the car's estimate."""

@@ -182,25 +182,23 @@ class ShieldReport:
     @property
     def min_hard_h(self) -> float:
         """Smallest barrier value of the hard rows (< 0: the state is already unsafe)."""
-        if self.rows is None:
-            return math.inf
-        hard = [
-            h
-            for k, h in zip(self.rows.kind.tolist(), self.rows.h.tolist(), strict=True)
-            if k < CONNECT
-        ]
-        return min(hard, default=math.inf)
+        return self.family_minima()[1]
 
     @property
     def min_h_by_family(self) -> dict[str, float]:
         """The least barrier value h of each row family present (`KIND_NAMES`)."""
+        return self.family_minima()[0]
+
+    def family_minima(self) -> tuple[dict[str, float], float]:
+        """(`min_h_by_family`, `min_hard_h`) in one pass over the rows."""
         if self.rows is None or not len(self.rows.h):
-            return {}
+            return {}, math.inf
         low: dict[int, float] = {}
         for kind, h in zip(self.rows.kind.tolist(), self.rows.h.tolist(), strict=True):
             if kind not in low or h < low[kind]:
                 low[kind] = h
-        return {KIND_NAMES[kind]: low[kind] for kind in sorted(low)}
+        hard = min([h for kind, h in low.items() if kind < CONNECT], default=math.inf)
+        return {KIND_NAMES[kind]: low[kind] for kind in sorted(low)}, hard
 
     @property
     def h(self) -> dict[str, float]:
@@ -310,8 +308,18 @@ class SafetyFilter:
         """
         t0 = time.perf_counter()
         u = _checked_nominal(u_nominal, ctx)
-        if rows is None:
-            rows = self._rows(ctx)
+        return self._certify(u, ctx, self._rows(ctx) if rows is None else rows, t0)
+
+    def certify_trusted(
+        self, u: np.ndarray, ctx: SafetyContext, rows: CBFRows
+    ) -> tuple[np.ndarray, ShieldReport]:
+        """`certify` of a command the caller guarantees is a finite float64 (4,) array, with
+        ``rows(ctx)``: no checks (the shield's commands are the env's validated actions)."""
+        return self._certify(u, ctx, rows, time.perf_counter())
+
+    def _certify(
+        self, u: np.ndarray, ctx: SafetyContext, rows: CBFRows, t0: float
+    ) -> tuple[np.ndarray, ShieldReport]:
         vx, vy, vz, wn = u.tolist()
         w = min(max(wn, -self.w_max), self.w_max)
         box = self._box(ctx, rows)

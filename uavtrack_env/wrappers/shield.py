@@ -106,55 +106,57 @@ class CBFShield(BaseParallelWrapper):
     def step(self, actions: dict[str, Any]):
         # The env's own validation: identical errors, raised before anything changes.
         u, clipped = self._raw.validate_actions(actions)
-        safe, certified, reports = {}, {}, {}
-        u_env, clipped_env = u.copy(), clipped.copy()  # what the env makes of ``safe``
-        for agent, action in actions.items():
+        reports = {}
+        u_safe = u.copy()
+        for agent in actions:
             i = self._ids[agent]
-            u_safe, report = self.certify(agent, u[i])
-            reports[agent] = report
-            certified[agent] = np.clip(u_safe / self._scale, -1.0, 1.0)
-            # An unchanged action is passed through as given (bit-identical behaviour).
-            safe[agent] = certified[agent] if report.active else action
-            if report.active:
-                u_env[i], clipped_env[i] = certified[agent] * self._scale, False
+            u_safe[i], reports[agent] = self.onboard[agent].certify_trusted(u[i])
+        certified = np.clip(u_safe / self._scale, -1.0, 1.0)
+        # An unchanged action is passed through as given (bit-identical behaviour).
+        changed = [self._ids[a] for a, rep in reports.items() if rep.active]
         if self.env is self._raw:  # checked above: the env's step without checking again
+            u_env, clipped_env = u.copy(), clipped.copy()
+            u_env[changed], clipped_env[changed] = certified[changed] * self._scale, False
             out = self._raw._step_checked(u_env, clipped_env)
         else:
-            out = self.env.step(safe)
+            out = self.env.step(
+                {a: certified[self._ids[a]] if reports[a].active else act
+                 for a, act in actions.items()}
+            )  # fmt: skip
         obs, rewards, terms, truncs, infos = out
         self._observe(infos)
         self.last_reports = reports
+        proposed = u / self._scale
         for agent, info in infos.items():
             i = self._ids[agent]
             self._clips[agent] += bool(clipped[i])
             info["action_clipped"] = bool(clipped[i])
             info["n_clipped_actions"] = self._clips[agent]
-            info["shield"] = self._telemetry(agent, reports[agent], u[i], certified[agent])
+            info["shield"] = shield = self._telemetry(agent, reports[agent])
+            shield["proposed"], shield["action"] = proposed[i], certified[i]
             if terms[agent] or truncs[agent]:
-                info["shield"]["episode"] = self._episode_summary(agent)
+                shield["episode"] = self._episode_summary(agent)
         return obs, rewards, terms, truncs, infos
 
-    def _telemetry(
-        self, agent: str, rep: ShieldReport, u: np.ndarray, certified: np.ndarray
-    ) -> dict[str, Any]:
-        """``info[agent]["shield"]`` for one step (class docstring); updates the episode sums."""
+    def _telemetry(self, agent: str, rep: ShieldReport) -> dict[str, Any]:
+        """``info[agent]["shield"]`` for one step (class docstring) but the actions; updates the
+        episode sums."""
         ep = self._episode[agent]
         ep["steps"] += 1
         ep["interventions"] += rep.active
         ep["fallbacks"] += rep.status == "fallback"
         ep["correction"] += rep.correction_norm
+        min_h, min_hard_h = rep.family_minima()
         return {
             "active": rep.active,
-            "proposed": u / self._scale,
-            "action": np.asarray(certified, np.float64),
             "correction_norm": rep.correction_norm,
             "status": rep.status,
             "active_rows": list(rep.active_rows),
             "gave_up": list(rep.gave_up),
             "slack": rep.slack,
             "hard_violation": rep.hard_violation,
-            "min_h": rep.min_h_by_family,
-            "min_hard_h": rep.min_hard_h,
+            "min_h": min_h,
+            "min_hard_h": min_hard_h,
             "has_target_estimate": self.onboard[agent].estimate is not None,
         }
 
