@@ -72,7 +72,7 @@ def update_trackers(trackers: Sequence[OnboardTracker], infos: Sequence[dict]) -
         u_meas = np.array((vx, vy, vz, -float(own["yaw_rate"])))
         running.append(tracker)
         inputs.append((u_meas, pos, yaw, meas))
-    estimates = step_team([t.estimator for t in running], inputs)
+    estimates = step_team([t.estimator for t in running], inputs, trusted=True)
     for tracker, est in zip(running, estimates, strict=True):
         tracker.estimate = est
     return [t.estimate for t in trackers]
@@ -124,6 +124,7 @@ class NeighbourTable:
         self._names: list[str] = []
         self._ids: list[int] = []
         self._index: dict[str, int] = {}
+        self._all: tuple[tuple[str, ...], tuple[int, ...]] = ((), ())
         self._pos = np.zeros((0, 3))
         self._vel = np.zeros((0, 3))
         self._vel_err = np.zeros(0)
@@ -138,6 +139,7 @@ class NeighbourTable:
         self._names = [names[k] for k in keep]
         self._ids = keep
         self._index = {a: k for k, a in enumerate(self._names)}
+        self._all = (tuple(self._names), tuple(keep))
         self._pos = positions[keep].copy()
         self._vel = np.zeros_like(self._pos)
         self._vel_err = np.zeros(len(keep))
@@ -160,17 +162,22 @@ class NeighbourTable:
 
     def belief(self) -> NeighbourBelief:
         """The known team-mates now."""
-        k = np.flatnonzero(self._known)
-        pos, vel, radius, vel_radius = _believe(
-            k, self._pos, self._vel, self._vel_err, self._age, self.dt, self.speed_bound,
-            -1.0 if self.accel_bound is None else self.accel_bound,
+        k, pos, vel, radius, vel_radius = _believe(
+            self._known, self._pos, self._vel, self._vel_err, self._age, self.dt,
+            self.speed_bound, -1.0 if self.accel_bound is None else self.accel_bound,
         )  # fmt: skip
-        names, ids = self._names, self._ids
-        known = k.tolist()
-        return NeighbourBelief(
-            tuple([names[i] for i in known]), pos, vel, radius, vel_radius, self._age[k],
-            tuple([ids[i] for i in known]),
+        if len(k) == len(self._names):
+            names, ids = self._all
+        else:
+            known = k.tolist()
+            names = tuple([self._names[i] for i in known])
+            ids = tuple([self._ids[i] for i in known])
+        belief = object.__new__(NeighbourBelief)  # frozen: fields set as dataclasses do
+        belief.__dict__.update(
+            names=names, positions=pos, velocities=vel, position_radius=radius,
+            velocity_radius=vel_radius, ages=self._age[k], ids=ids,
         )  # fmt: skip
+        return belief
 
 
 _NO_POSITIONS = np.zeros((0, 3))
@@ -204,9 +211,10 @@ def _take_messages(
 
 
 @numba.njit(cache=True)
-def _believe(ks, p, v, v_err, age, dt, speed, accel):  # pragma: no cover (compiled)
-    """`NeighbourTable.belief`'s arrays for the known team-mates ``ks`` (``accel`` < 0: none):
-    positions, velocities, position and velocity radii."""
+def _believe(known, p, v, v_err, age, dt, speed, accel):  # pragma: no cover (compiled)
+    """`NeighbourTable.belief`'s arrays for the ``known`` team-mates (``accel`` < 0: none):
+    their indices, positions, velocities, position and velocity radii."""
+    ks = np.flatnonzero(known)
     m = ks.shape[0]
     pos = np.empty((m, 3))
     vel = np.empty((m, 3))
@@ -228,7 +236,7 @@ def _believe(ks, p, v, v_err, age, dt, speed, accel):  # pragma: no cover (compi
             for a in range(3):
                 pos[i, a] = p[k, a] + v[k, a] * t
             vel_radius[i] = min(err + accel * t, 2.0 * speed)
-    return pos, vel, radius, vel_radius
+    return ks, pos, vel, radius, vel_radius
 
 
 class OnboardAgent:
@@ -388,6 +396,11 @@ def observe_team(agents: Sequence[OnboardAgent], infos: Sequence[dict]) -> None:
         agent._take(info)
 
 
+_CAR_DIAG = math.hypot(*CAR_HALF_EXTENTS[:2].tolist())
+"""The car footprint's half diagonal (m)."""
+_CAR_HALF_HEIGHT = float(CAR_HALF_EXTENTS[2])
+
+
 def car_box(
     est: Estimate,
     margins: ShieldMargins,
@@ -411,10 +424,8 @@ def car_box(
     extent: the box, centred at the estimate, reaches from the ground (or below) to the car's
     height plus ``target_margin``, whatever the estimated height.
     """
-    a, b, c = CAR_HALF_EXTENTS
-    diag = math.hypot(a, b)
-    P = est.covariance
-    sigma_p = math.sqrt(max(P[4, 4], P[5, 5], P[6, 6], 0.0))
+    diag, c = _CAR_DIAG, _CAR_HALF_HEIGHT
+    sigma_p = math.sqrt(max(*est.covariance.diagonal()[4:7].tolist(), 0.0))
     pad = min(margins.target_margin + margins.target_sigmas * sigma_p, margins.target_margin_max)
     stale = est.steps_since_detection * DT - margins.target_stale_after
     growing = stale > 0.0

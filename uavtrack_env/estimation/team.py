@@ -257,11 +257,14 @@ def _constants(est: TargetEstimator) -> tuple[float, np.ndarray, np.ndarray, flo
     return out
 
 
-def step_team(estimators: Sequence[TargetEstimator], inputs: Sequence[StepInput]) -> list[Estimate]:
+def step_team(
+    estimators: Sequence[TargetEstimator], inputs: Sequence[StepInput], trusted: bool = False
+) -> list[Estimate]:
     """`TargetEstimator.step` for every estimator with its input, in one batched pass.
 
     The estimators must share camera, `UKFConfig` and dt. Estimators whose config has
-    ``vectorized = False`` step one by one through plain filterpy."""
+    ``vectorized = False`` step one by one through plain filterpy. ``trusted``: the inputs are
+    the env's own data, as `TargetEstimator.begin_step_trusted` takes them (no checks)."""
     if len(estimators) != len(inputs):
         raise ValueError(f"{len(estimators)} estimators but {len(inputs)} inputs")
     if not estimators:
@@ -272,7 +275,10 @@ def step_team(estimators: Sequence[TargetEstimator], inputs: Sequence[StepInput]
             raise ValueError("step_team needs estimators with one camera, UKFConfig and dt")
     if not first.cfg.vectorized:
         return [est.step(*inp) for est, inp in zip(estimators, inputs, strict=True)]
-    plans = [est.begin_step(*inp) for est, inp in zip(estimators, inputs, strict=True)]
+    plans = [
+        (est.begin_step_trusted if trusted else est.begin_step)(*inp)
+        for est, inp in zip(estimators, inputs, strict=True)
+    ]
     ukf = first.ukf
     lam, *constants = _constants(first)
     K = len(estimators)
@@ -297,7 +303,7 @@ def step_team(estimators: Sequence[TargetEstimator], inputs: Sequence[StepInput]
 
     out = []
     for k, (est, plan) in enumerate(zip(estimators, plans, strict=True)):
-        est.ukf.x, est.ukf.P = x[k].copy(), P[k].copy()
+        est.ukf.x, est.ukf.P = x[k], P[k]  # rows of this call's own arrays
         est.n_covariance_repairs += int(repairs[k])
         out.append(est.end_step(plan))
     return out

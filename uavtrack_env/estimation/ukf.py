@@ -37,6 +37,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 from filterpy.kalman import MerweScaledSigmaPoints, UnscentedKalmanFilter, unscented_transform
@@ -225,8 +226,7 @@ class Estimate:
     """Steps since the last measurement update (0 when detected)."""
 
 
-@dataclass(frozen=True)
-class StepPlan:
+class StepPlan(NamedTuple):
     """One estimator step's inputs, checked and prepared (`TargetEstimator.begin_step`)."""
 
     u: np.ndarray
@@ -543,8 +543,6 @@ class TargetEstimator:
     # -- helpers
 
     def _z(self, meas: Measurement, uav_position: np.ndarray) -> np.ndarray:
-        if not isinstance(meas, Measurement):
-            raise ValueError(f"meas must be a Measurement or None, got {type(meas).__name__}")
         x, y, z = uav_position.tolist()
         return np.array((meas.u, meas.v, meas.depth, wrap_scalar(meas.psi), x, y, z), dtype=float)
 
@@ -565,11 +563,11 @@ class TargetEstimator:
         return bool(changed[0])
 
     def _estimate(self, yaw: float, detected: bool) -> Estimate:
-        x = self.ukf.x
+        x = self.ukf.x.copy()
         return Estimate(
-            s=x[0:4].copy(),
-            target_position=x[4:7].copy(),
-            target_velocity=x[7:10].copy(),
+            s=x[0:4],
+            target_position=x[4:7],
+            target_velocity=x[7:10],
             target_acceleration=self._accel.copy(),
             vq_cam=world_to_cam_vec(x[7:10], yaw),
             detected=detected,
@@ -591,6 +589,8 @@ class TargetEstimator:
         """Initialise the state from one detection by inverting eq. (8)/(9); V_q starts at 0."""
         if meas is None:
             raise ValueError("reset needs a Measurement (the target must be detected at start)")
+        if not isinstance(meas, Measurement):
+            raise ValueError(f"meas must be a Measurement, got {type(meas).__name__}")
         p = _vec("uav_position", uav_position, 3)
         yaw = _scalar("uav_yaw", uav_yaw)
         z = self._z(meas, p)
@@ -658,6 +658,15 @@ class TargetEstimator:
         u = _vec("u_applied", u_applied, 4)
         p = _vec("uav_position", uav_position, 3)
         yaw = _scalar("uav_yaw", uav_yaw)
+        if meas is not None and not isinstance(meas, Measurement):
+            raise ValueError(f"meas must be a Measurement or None, got {type(meas).__name__}")
+        return self.begin_step_trusted(u, p, yaw, meas)
+
+    def begin_step_trusted(
+        self, u: np.ndarray, p: np.ndarray, yaw: float, meas: Measurement | None
+    ) -> StepPlan:
+        """`begin_step` of inputs the caller guarantees: finite float64 arrays u (4,) and p
+        (3,), a float yaw, a `Measurement` or None (the env's own data); no checks."""
         z = None if meas is None else self._z(meas, p)
         if z is not None and self.cfg.truncated_v_hold_height:
             if meas.truncated_v:

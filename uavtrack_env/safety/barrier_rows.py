@@ -14,6 +14,8 @@ import math
 import numba
 import numpy as np
 
+from uavtrack_env.safety.occlusion import occlusion_family
+
 N_FAMILIES = 5
 """uav, obstacle, target, floor, connect: the order of `first_order_rows`' families."""
 
@@ -186,3 +188,86 @@ def first_order_rows(
             r += 1
     sizes[4] = r - start
     return A[:r], h[:r], drift[:r], index[:r], sizes
+
+
+@numba.njit(cache=True)
+def all_rows(
+    p,
+    nb,
+    rho,
+    centers,
+    half,
+    box_model,
+    car,
+    q,
+    vq,
+    car_half,
+    heading,
+    growth,
+    d_s,
+    r_s,
+    r_c,
+    alpha_v,
+    clearance,
+    z_min,
+    occlusion,
+    theta_star,
+    mode,
+    moving_target,
+    size_margin,
+    gammas,
+    margins,
+):  # pragma: no cover (compiled)
+    """`first_order_rows` and, with ``occlusion``, `occlusion_family`'s rows after them, as one
+    stack with each row's rate and margin (``gammas``, ``margins``: one per family) and
+    ``b = gamma h + drift - margin``: (A, b, h, gamma, drift, margin, kind, index, sizes), sizes
+    per family (the 6th: occlusion)."""
+    A1, h1, drift1, index1, sizes1 = first_order_rows(
+        p,
+        nb,
+        rho,
+        centers,
+        half,
+        box_model,
+        car,
+        q,
+        vq,
+        car_half,
+        heading,
+        growth,
+        d_s,
+        r_s,
+        r_c,
+        alpha_v,
+        clearance,
+        z_min,
+    )
+    if occlusion:
+        A2, h2, drift2, index2 = occlusion_family(
+            p, q, vq, centers, half, theta_star, mode, moving_target, size_margin
+        )
+    else:
+        A2, h2, drift2, index2 = A1[:0], h1[:0], drift1[:0], index1[:0]
+    n1, n2 = h1.shape[0], h2.shape[0]
+    n = n1 + n2
+    sizes = np.empty(N_FAMILIES + 1, np.int64)
+    sizes[:N_FAMILIES] = sizes1
+    sizes[N_FAMILIES] = n2
+    A = np.empty((n, 3))
+    h = np.empty(n)
+    drift = np.empty(n)
+    index = np.empty(n, np.int64)
+    A[:n1], h[:n1], drift[:n1], index[:n1] = A1, h1, drift1, index1
+    A[n1:], h[n1:], drift[n1:], index[n1:] = A2, h2, drift2, index2
+    gamma = np.empty(n)
+    margin = np.empty(n)
+    kind = np.empty(n, np.int64)
+    r = 0
+    for f in range(N_FAMILIES + 1):
+        for _ in range(sizes[f]):
+            gamma[r], margin[r], kind[r] = gammas[f], margins[f], f
+            r += 1
+    b = np.empty(n)
+    for j in range(n):
+        b[j] = gamma[j] * h[j] + drift[j] - margin[j]
+    return A, b, h, gamma, drift, margin, kind, index, sizes

@@ -89,6 +89,15 @@ def daqp_bounds(lb, ub, h):  # pragma: no cover (compiled)
 
 
 @numba.njit(cache=True)
+def rows_hold(A, b, v, tol):  # pragma: no cover (compiled)
+    """Every row ``A v <= b`` holds within ``tol`` (A (m, 3))."""
+    for j in range(b.shape[0]):
+        if A[j, 0] * v[0] + A[j, 1] * v[1] + A[j, 2] * v[2] - b[j] > tol:
+            return False
+    return True
+
+
+@numba.njit(cache=True)
 def meets(x, G, h, lb, ub, tol):  # pragma: no cover (compiled)
     """A solver's answer is finite and meets ``G x <= h`` within ``tol (1 + |h|)`` and the
     bounds within ``tol``."""

@@ -74,6 +74,7 @@ from uavtrack_env.safety.qp_arrays import (
     meets,
     qp_arrays,
     row_violations,
+    rows_hold,
 )
 from uavtrack_env.validation import Fields as _Fields
 
@@ -373,7 +374,7 @@ class SafetyFilter:
         within `ShieldOptions.tol`."""
         c, s = math.cos(yaw), math.sin(yaw)
         V = np.array((s * vx + c * vz, -c * vx + s * vz, -vy))  # cam_to_world_vec
-        return rows.A.shape[0] == 0 or bool((rows.A @ V - rows.b <= self.options.tol).all())
+        return rows_hold(rows.A, rows.b, V, self.options.tol)
 
     def _qp_rows(
         self, rows: CBFRows, yaw: float
@@ -397,7 +398,7 @@ class SafetyFilter:
         QP calls."""
         status, solver, calls = "optimal", "closed-form", 0
         v = v_hat if in_bounds else self._project_bounds(v_hat, box)
-        if v is None or (len(bn) and not (An @ v - bn <= self.options.tol).all()):
+        if v is None or not rows_hold(An, bn, v, self.options.tol):
             lb, ub = box if box is not None else (self._lb3, self._ub3)
             try:
                 v, status, solver, calls = self._solve_layers(v_hat, An, bn, kinds, lb, ub)
