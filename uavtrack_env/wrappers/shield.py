@@ -126,11 +126,11 @@ class CBFShield(BaseParallelWrapper):
         obs, rewards, terms, truncs, infos = out
         self._observe(infos)
         self.last_reports = reports
-        proposed = u / self._scale
+        proposed, was_clipped = u / self._scale, clipped.tolist()
         for agent, info in infos.items():
             i = self._ids[agent]
-            self._clips[agent] += bool(clipped[i])
-            info["action_clipped"] = bool(clipped[i])
+            self._clips[agent] += was_clipped[i]
+            info["action_clipped"] = was_clipped[i]
             info["n_clipped_actions"] = self._clips[agent]
             info["shield"] = shield = self._telemetry(agent, reports[agent])
             shield["proposed"], shield["action"] = proposed[i], certified[i]
@@ -151,8 +151,8 @@ class CBFShield(BaseParallelWrapper):
             "active": rep.active,
             "correction_norm": rep.correction_norm,
             "status": rep.status,
-            "active_rows": list(rep.active_rows),
-            "gave_up": list(rep.gave_up),
+            "active_rows": rep.active_rows,  # the report's own lists, made for this step
+            "gave_up": rep.gave_up,
             "slack": rep.slack,
             "hard_violation": rep.hard_violation,
             "min_h": min_h,
