@@ -61,9 +61,12 @@ def run_episode(
     tally = _Tally()
     slacks = getattr(policy, "slacks", None)
     wall = time.perf_counter()
-    for _ in tqdm(range(steps), desc=label, disable=not progress, leave=False):
+    bar = tqdm(range(steps), desc=label, disable=not progress, leave=False)
+    for k in bar:
         if not env.agents:
             break
+        if k and k % 80 == 0:  # once per simulated second
+            bar.set_postfix_str(f"x{k * DT / (time.perf_counter() - wall):.2f} real time")
         t0 = time.perf_counter()
         actions = policy(obs, infos)
         t1 = time.perf_counter()

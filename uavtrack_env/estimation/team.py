@@ -271,7 +271,8 @@ def step_team(
         return []
     first = estimators[0]
     for est in estimators[1:]:
-        if (est.camera, est.cfg, est.dt) != (first.camera, first.cfg, first.dt):
+        same = est.camera is first.camera and est.cfg is first.cfg and est.dt == first.dt
+        if not same and (est.camera, est.cfg, est.dt) != (first.camera, first.cfg, first.dt):
             raise ValueError("step_team needs estimators with one camera, UKFConfig and dt")
     if not first.cfg.vectorized:
         return [est.step(*inp) for est, inp in zip(estimators, inputs, strict=True)]
