@@ -22,7 +22,7 @@ WORLD = {
 }
 
 
-@pytest.mark.filterwarnings("ignore:CBFShield")
+@pytest.mark.filterwarnings("ignore:the shield certifies")
 @pytest.mark.parametrize("preset", ["tuned", "paper"])
 def test_expert_and_shield_certify_alike(preset):
     """Fed the same info stream, the expert's and the shield's stacks build identical rows and
@@ -119,7 +119,7 @@ def test_expert_acts_only_after_a_layout():
     env.close()
 
 
-@pytest.mark.filterwarnings("ignore:CBFShield")
+@pytest.mark.filterwarnings("ignore:the shield certifies")
 @pytest.mark.parametrize("dynamics", ["integrator", "lag"])
 def test_lost_messages_keep_each_teammate_inside_its_reachable_set(dynamics):
     """With half the messages lost, every team-mate stays known, and its true position and
@@ -174,7 +174,7 @@ def test_a_silent_teammate_is_forgotten_after_the_timeout():
     assert table.belief().names == ("c",) and table.belief().position_radius[0] == 0.0
 
 
-@pytest.mark.filterwarnings("ignore:CBFShield")
+@pytest.mark.filterwarnings("ignore:the shield certifies")
 def test_the_trusted_context_builds_the_rows_of_a_checked_one():
     """The onboard stack builds its SafetyContext without re-checking the env's arrays; the
     same values through SafetyContext's checks give bit-identical rows."""

@@ -8,8 +8,8 @@ or PPO-Lagrangian.
 
 One policy drives every UAV: each agent of each world is one row of an SB3 VecEnv
 (`uavtrack_env.wrappers.sb3`: `VectorSharedPolicyVecEnv`, all ``--n-envs`` worlds in one batched
-step, or, with ``--shield``, `SharedPolicyVecEnv` over shielded copies); with ``--shield`` every
-action passes the expert's CBF-QP (`CBFShield`) in training and in evaluation; with
+step); with ``--shield`` every action passes the expert's CBF-QP in training (`VectorCBFShield`)
+and in evaluation (`CBFShield`); with
 ``--lagrangian`` the cost is penalised by an adapted multiplier (`train.lagrangian`). Writes
 into DIR: ``tb/``
 (TensorBoard: ``rollout/ep_cost_mean``, ``safety/*_rate``, ``lagrangian/lambda``),
@@ -260,42 +260,26 @@ def world_settings(args: Args) -> dict[str, Any]:
 
 # ------------------------------------------------------------------------ env
 def env_fn(args: Args):
-    """Factory of one training copy: a random world, shielded if asked."""
+    """Factory of one unshielded training world (a ParallelEnv)."""
     from uavtrack_env import uavtrack_v0
 
-    expert = expert_settings(args)
     kwargs = world_settings(args)
-
-    def make():
-        env = uavtrack_v0.parallel_env(**kwargs)
-        if args.shield:
-            from uavtrack_env.wrappers import CBFShield
-
-            env = CBFShield(env, expert)
-        return env
-
-    return make
+    return lambda: uavtrack_v0.parallel_env(**kwargs)
 
 
 def make_vec_env(args: Args, lambda_init: float = 0.0):
     """The rows' VecEnv -> AgentVecMonitor (-> LagrangianReward) (-> VecNormalize), seeded.
 
-    Unshielded: `VectorSharedPolicyVecEnv`, every world in one batched step; shielded:
-    `SharedPolicyVecEnv` over shielded ParallelEnvs (the onboard stacks step per UAV)."""
+    `VectorSharedPolicyVecEnv`: every world in one batched step, shielded by `VectorCBFShield`
+    with ``--shield``."""
     from stable_baselines3.common.vec_env import VecNormalize
 
-    from uavtrack_env.wrappers.sb3 import (
-        AgentVecMonitor,
-        SharedPolicyVecEnv,
-        VectorSharedPolicyVecEnv,
-    )
+    from uavtrack_env.wrappers.sb3 import AgentVecMonitor, VectorSharedPolicyVecEnv
 
     from .lagrangian import LagrangianReward
 
-    if args.shield:
-        rows = SharedPolicyVecEnv(env_fn(args), n_copies=args.n_envs)
-    else:
-        rows = VectorSharedPolicyVecEnv(args.n_envs, **world_settings(args))
+    shield = expert_settings(args) if args.shield else None
+    rows = VectorSharedPolicyVecEnv(args.n_envs, shield=shield, **world_settings(args))
     vec = AgentVecMonitor(rows)
     if args.lagrangian:
         vec = LagrangianReward(vec, lagrangian_settings(args, lambda_init))
@@ -342,7 +326,7 @@ def demonstrations(args: Args) -> tuple[np.ndarray, np.ndarray]:
         with np.load(path) as d:
             print(f"behaviour cloning: {len(d['obs'])} samples from {path}")
             return d["obs"], d["actions"]
-    make = env_fn(dataclasses.replace(args, shield=False))
+    make = env_fn(args)
     obs, actions = bc.collect(
         make, args.bc_episodes, BC_SEED + args.seed, args.progress, expert_settings(args)
     )

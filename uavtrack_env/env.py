@@ -439,7 +439,8 @@ class UAVTrackEnv(ParallelEnv):
             "occlusion": bool(score.occluded[i]),
         }
         costs = {k: float(v) for k, v in violations.items()}
-        return {
+        state = (self.position, self.yaw, self.velocity, self.yaw_rate)
+        info = {
             "cost": costs["collision"] + costs["disconnection"] + costs["occlusion"],
             "costs": costs,
             "violations": violations,
@@ -451,36 +452,12 @@ class UAVTrackEnv(ParallelEnv):
             "reward_effort": -float(score.effort[i]),
             "action_clipped": bool(clipped[i]),
             "n_clipped_actions": int(self._clip_count[i]),
-            "measurement": self._measurement(m.detections, i),
-            "own": {
-                "position": self.position[i].copy(),
-                "yaw": float(self.yaw[i]),
-                "velocity": self.velocity[i].copy(),
-                "yaw_rate": float(self.yaw_rate[i]),
-                "applied_u": u[i].copy(),
-            },
-            "neighbours": {
-                self.possible_agents[j]: self.position[j].copy()
-                for j in np.flatnonzero(m.received[i])
-            },
+            **sensor_info(i, self.possible_agents, m.detections, m.received, state),
             "reference": self.references[i].copy(),
             "truth": self._truth(i, m, truths),
         }
-
-    @staticmethod
-    def _measurement(det: Detections, i: int) -> dict:
-        """The detector's report for UAV i; u, v, depth, psi are None when not detected."""
-        ok = bool(det.detected[i])
-        return {
-            "detected": ok,
-            "u": float(det.u[i]) if ok else None,
-            "v": float(det.v[i]) if ok else None,
-            "depth": float(det.depth[i]) if ok else None,
-            "psi": float(det.psi[i]) if ok else None,
-            "visible_fraction": float(det.visible_fraction[i]),
-            "truncated_u": ok and bool(det.truncated[i, 0]),
-            "truncated_v": ok and bool(det.truncated[i, 1]),
-        }
+        info["own"]["applied_u"] = u[i].copy()
+        return info
 
     def _truths(self, m: Measurements) -> dict[str, Any]:
         """The parts of every UAV's ground truth computed for the whole team at once."""
@@ -594,3 +571,37 @@ class UAVTrackEnv(ParallelEnv):
 
     def __reduce_ex__(self, protocol):
         return self.world.__reduce_ex__(protocol)  # refuses: the world owns a live client
+
+
+def sensor_info(
+    i: int,
+    names: list[str],
+    det: Detections,
+    received: np.ndarray,
+    state: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
+) -> dict[str, dict]:
+    """What UAV i's own sensors and radio report, the part of its info an onboard stack reads:
+    ``measurement`` (the detector's report; u, v, depth, psi None when not detected), ``own``
+    (position, yaw, velocity, yaw_rate from ``state``) and ``neighbours`` (name -> position of
+    each team-mate heard, ``received[i]``)."""
+    position, yaw, velocity, yaw_rate = state
+    ok = bool(det.detected[i])
+    return {
+        "measurement": {
+            "detected": ok,
+            "u": float(det.u[i]) if ok else None,
+            "v": float(det.v[i]) if ok else None,
+            "depth": float(det.depth[i]) if ok else None,
+            "psi": float(det.psi[i]) if ok else None,
+            "visible_fraction": float(det.visible_fraction[i]),
+            "truncated_u": ok and bool(det.truncated[i, 0]),
+            "truncated_v": ok and bool(det.truncated[i, 1]),
+        },
+        "own": {
+            "position": position[i].copy(),
+            "yaw": float(yaw[i]),
+            "velocity": velocity[i].copy(),
+            "yaw_rate": float(yaw_rate[i]),
+        },
+        "neighbours": {names[j]: position[j].copy() for j in np.flatnonzero(received[i])},
+    }

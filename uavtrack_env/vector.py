@@ -45,7 +45,7 @@ from gymnasium.vector import AutoresetMode
 
 from . import core
 from .core import Obstacles, Score
-from .env import UAVTrackEnv
+from .env import UAVTrackEnv, sensor_info
 
 VIOLATIONS = ("collision", "disconnection", "occlusion")
 
@@ -92,6 +92,11 @@ class UAVTrackVectorEnv:
         self._detector = first.detector
         self._bounds = (first._obs_low, first._obs_high)
         self._obstacles: Obstacles | None = None
+        # What `sensor_infos` reads: a world's info dicts where the step or a reset built them,
+        # else the batch's measurements and the agents that took part in the step.
+        self._world_infos: list[dict[str, dict] | None] = [None] * K
+        self._sensed: core.Measurements | None = None
+        self._stepped = np.zeros(shape, bool)
 
     # ------------------------------------------------------------------ reset
     def reset(
@@ -124,6 +129,7 @@ class UAVTrackVectorEnv:
         env = self.envs[k]
         obs, infos = env.reset(seed=seed, options=options)
         self._active[k] = True
+        self._world_infos[k] = infos
         self._load(k)
         return np.stack([obs[a] for a in self.possible_agents]), self._reset_info(env, infos)
 
@@ -148,6 +154,8 @@ class UAVTrackVectorEnv:
         u, clipped = self._checked(actions)
         active = self._active.copy()
         u, clipped = u * active[..., None], clipped & active
+        self._world_infos = [None] * self.num_envs
+        self._stepped = active
         if self.full_infos:
             obs, rewards, terminated, truncate, infos = self._step_each(u, clipped, active)
         else:
@@ -180,6 +188,7 @@ class UAVTrackVectorEnv:
             cfg, self._detector, worlds, targets, [e.np_random for e in envs], self._obstacles,
             position, yaw, self._alive,
         )  # fmt: skip
+        self._sensed = m
         score = core.score(cfg, m, self._references, self._alive, u)
         obs = core.observation(cfg, m, self._state, self._references, self._obstacles, self._bounds)
         obs *= active[..., None]
@@ -220,6 +229,7 @@ class UAVTrackVectorEnv:
             rewards[k] = score.reward * active[k]
             info = self._info_arrays(batch_score, clipped[k][None], active[k][None])
             info["agents"] = [env._infos(m, score, u[k], clipped[k])]
+            self._world_infos[k] = info["agents"][0]
             terminated[k], truncate[k] = env._end_arrays(score.collided)
             self._load(k)
             per_world.append(info)
@@ -283,6 +293,21 @@ class UAVTrackVectorEnv:
             )
         clipped = np.any(np.abs(a) > 1.0, axis=-1)
         return np.clip(a, -1.0, 1.0) * self._scale, clipped
+
+    def sensor_infos(self, k: int) -> dict[str, dict]:
+        """World k's `env.sensor_info` of every agent of its latest step (or of its reset, if it
+        reset since), by agent: the measurement, own state and messages an onboard stack reads
+        (`uavtrack_env.wrappers.VectorCBFShield`)."""
+        infos = self._world_infos[k]
+        if infos is not None:
+            return infos
+        m, names = self._sensed, self.possible_agents
+        det, received = m.detections.world(k), m.received[k]
+        state = tuple(a[k] for a in self._state)
+        return {
+            names[i]: sensor_info(i, names, det, received, state)
+            for i in np.flatnonzero(self._stepped[k])
+        }
 
     # ----------------------------------------------------------------- extras
     def close(self) -> None:

@@ -27,12 +27,15 @@ instead of SB3's ``VecMonitor`` so that the absorbing chains are not counted as 
 from __future__ import annotations
 
 from collections.abc import Callable, Iterable, Sequence
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import gymnasium
 import numpy as np
 from stable_baselines3.common.vec_env import VecEnv, VecMonitor
 from stable_baselines3.common.vec_env.base_vec_env import VecEnvIndices, VecEnvStepReturn
+
+if TYPE_CHECKING:
+    from uavtrack_env.presets import ExpertConfig
 
 __all__ = ["AgentVecMonitor", "SharedPolicyVecEnv", "VectorSharedPolicyVecEnv"]
 
@@ -238,12 +241,20 @@ class VectorSharedPolicyVecEnv(VecEnv):
     Each row's info holds the vector env's array infos of that row (``cost``, ``costs``,
     ``reward_tracking``, ``reward_effort``, ``action_clipped``) and ``violations`` (the costs as
     flags); not the ParallelEnv's nested per-agent dicts. ``**config`` as for ``vector_env``.
+    ``shield``: an `ExpertConfig` or preset name to pass every action through
+    `VectorCBFShield` (rows then also hold ``shield``: ``active``, ``correction_norm``).
     """
 
-    def __init__(self, num_worlds: int, **config: Any) -> None:
+    def __init__(
+        self, num_worlds: int, shield: ExpertConfig | str | None = None, **config: Any
+    ) -> None:
         from uavtrack_env.vector import UAVTrackVectorEnv
 
         self.vector = UAVTrackVectorEnv(num_worlds, **config)
+        if shield is not None:
+            from uavtrack_env.wrappers.vector_shield import VectorCBFShield
+
+            self.vector = VectorCBFShield(self.vector, shield)
         v = self.vector
         self.n_worlds, self.n_agents = v.num_envs, v.n_agents
         obs_space = v.single_observation_space
@@ -287,7 +298,8 @@ class VectorSharedPolicyVecEnv(VecEnv):
         rows[ended] = obs[ended]  # the worlds that reset: their first observations
         dones = (done & was_live) | (ended[:, None] & ~was_live)
         infos: list[dict[str, Any]] = []
-        costs = info["costs"]
+        costs, shield = info["costs"], info.get("shield")
+        shielded = shield is not None
         for k in range(self.n_worlds):
             for j in range(self.n_agents):
                 if not was_live[k, j]:
@@ -306,6 +318,11 @@ class VectorSharedPolicyVecEnv(VecEnv):
                     "reward_effort": float(info["reward_effort"][k, j]),
                     "action_clipped": bool(info["action_clipped"][k, j]),
                 }
+                if shielded:
+                    row["shield"] = {
+                        "active": bool(shield["active"][k, j]),
+                        "correction_norm": float(shield["correction_norm"][k, j]),
+                    }
                 if done[k, j]:
                     row["terminal_observation"] = last[k, j].copy()
                     row["TimeLimit.truncated"] = bool(trunc[k, j] and not term[k, j])

@@ -23,12 +23,24 @@ from typing import Any
 import numpy as np
 from pettingzoo.utils.wrappers import BaseParallelWrapper
 
+from uavtrack_env.config import EnvConfig
 from uavtrack_env.env import UAVTrackEnv
 from uavtrack_env.onboard import OnboardAgent, observe_team
 from uavtrack_env.presets import ExpertConfig, expert_config
 from uavtrack_env.safety import SafetyContext, ShieldReport
 
 _EPISODE_KEYS = ("steps", "interventions", "fallbacks", "correction")
+
+
+def warn_if_lag_unaware(env_cfg: EnvConfig, cfg: ExpertConfig) -> None:
+    """Warn when a shield certifies with first-order rows a plant whose velocities lag."""
+    if env_cfg.dynamics.model == "lag" and not cfg.lag_aware:
+        warnings.warn(
+            "the shield certifies with the paper's first-order rows (lag_aware=False) but the "
+            f"env's velocities lag (dynamics.tau = {env_cfg.dynamics.tau} s): the shield is a "
+            "best effort",
+            stacklevel=3,
+        )
 
 
 class CBFShield(BaseParallelWrapper):
@@ -68,13 +80,7 @@ class CBFShield(BaseParallelWrapper):
         }
         first = next(iter(self.onboard.values()))
         self.cbf, self.filter = first.cbf, first.filter
-        if env_cfg.dynamics.model == "lag" and not cfg.lag_aware:
-            warnings.warn(
-                "CBFShield certifies with the paper's first-order rows (lag_aware=False) but the "
-                f"env's velocities lag (dynamics.tau = {env_cfg.dynamics.tau} s): the shield is a "
-                "best effort",
-                stacklevel=2,
-            )
+        warn_if_lag_unaware(env_cfg, cfg)
         self._raw = raw
         self._scale = env_cfg.limits.scale
         self._ids = {a: i for i, a in enumerate(raw.possible_agents)}

@@ -1,0 +1,142 @@
+"""``VectorCBFShield``: `CBFShield` over `uavtrack_v0.vector_env`.
+
+Every active row's action passes the onboard stack of its UAV (`OnboardAgent`: UKF, team-mates'
+messages, known map, CBF-QP (47)) before the worlds step in one batch. World k behaves exactly
+as ``CBFShield(parallel_env(**config))`` reset with seed s + k given the same actions (tested):
+the same certified actions, observations, rewards and terminations.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from uavtrack_env.onboard import OnboardAgent, observe_team
+from uavtrack_env.presets import ExpertConfig, expert_config
+from uavtrack_env.safety import ShieldReport
+from uavtrack_env.vector import UAVTrackVectorEnv
+from uavtrack_env.wrappers.shield import warn_if_lag_unaware
+
+
+class VectorCBFShield:
+    """`UAVTrackVectorEnv` wrapper: the actions of all worlds pass their UAVs' CBF-QP (47) first.
+
+    ``config``: an `ExpertConfig` or a preset name (default ``"tuned"``), as for `CBFShield`.
+    ``reset`` and ``step`` take and return what the vector env does (bad actions raise its own
+    errors and change nothing); ``infos["action_clipped"]`` flags the policy's actions outside
+    [-1, 1], and ``infos["shield"]`` holds arrays (K, n): ``active`` (the action was changed),
+    ``correction_norm`` (SI units, camera frame), ``fallback``, ``hard_violation`` and
+    ``min_hard_h`` (inf without hard rows), and (K, n, 4) ``proposed`` and ``action`` (the
+    certified action the world applies), normalised; zeros for inactive rows.
+    ``last_reports[k]`` keeps each agent's `ShieldReport` of the step.
+    """
+
+    def __init__(self, venv: UAVTrackVectorEnv, config: ExpertConfig | str | None = None) -> None:
+        if not isinstance(venv, UAVTrackVectorEnv):
+            raise TypeError(f"VectorCBFShield wraps a UAVTrackVectorEnv, got {type(venv).__name__}")
+        self.vector = venv
+        self.config = cfg = expert_config(config)
+        env_cfg = venv.config
+        warn_if_lag_unaware(env_cfg, cfg)
+        names = venv.possible_agents
+        self.onboard = [
+            [OnboardAgent(a, i, env_cfg, cfg) for i, a in enumerate(names)]
+            for _ in range(venv.num_envs)
+        ]
+        self.last_reports: list[dict[str, ShieldReport]] = [{} for _ in range(venv.num_envs)]
+        for name in (
+            "num_envs", "possible_agents", "n_agents", "envs", "config", "metadata",
+            "single_observation_space", "single_action_space", "observation_space",
+            "action_space",
+        ):  # fmt: skip
+            setattr(self, name, getattr(venv, name))
+        self._index = {a: i for i, a in enumerate(names)}
+        self._scale = venv._scale
+
+    def reset(
+        self, seed: int | None = None, options: dict | None = None
+    ) -> tuple[np.ndarray, dict[str, Any]]:
+        obs, infos = self.vector.reset(seed=seed, options=options)
+        for k in range(self.num_envs):
+            self._restart(k)
+        infos["shield"] = self._telemetry(*self._idle())
+        return obs, infos
+
+    def step(self, actions: Any):
+        u, clipped = self.vector._checked(actions)  # the vector env's errors, nothing changed
+        active = self.vector._active
+        u_safe = u.copy()
+        changed = np.zeros(active.shape, bool)
+        reports = [{} for _ in range(self.num_envs)]
+        for k, i in zip(*np.nonzero(active), strict=True):
+            agent = self.onboard[k][i]
+            u_safe[k, i], rep = agent.certify_trusted(u[k, i])
+            reports[k][agent.name] = rep
+            changed[k, i] = rep.active
+        certified = np.clip(u_safe / self._scale, -1.0, 1.0)
+        # An unchanged action is passed on as given: the world applies exactly what it would.
+        applied = np.where(changed[..., None], certified, np.asarray(actions, np.float64))
+        obs, rewards, terms, truncs, infos = self.vector.step(applied)
+        infos["action_clipped"] = clipped & active
+        self.last_reports = reports
+        live = active[..., None]
+        infos["shield"] = self._telemetry(reports, u / self._scale * live, certified * live)
+        ended = infos.get("_final_obs", np.zeros(self.num_envs, bool))
+        for k in range(self.num_envs):
+            if ended[k]:
+                self._restart(k)
+            else:
+                self._observe(k)
+        return obs, rewards, terms, truncs, infos
+
+    def close(self) -> None:
+        self.vector.close()
+
+    def __enter__(self) -> VectorCBFShield:
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.close()
+
+    # ----------------------------------------------------------------- helpers
+    def _restart(self, k: int) -> None:
+        """World k has reset: its UAVs take the new map and their first observation."""
+        env = self.vector.envs[k]
+        for agent in self.onboard[k]:
+            agent.reset(env.layout, env.possible_agents)
+        self._observe(k)
+
+    def _observe(self, k: int) -> None:
+        """World k's UAVs that took part in the step take their new measurements."""
+        infos = self.vector.sensor_infos(k)
+        team = self.onboard[k]
+        observe_team([team[self._index[a]] for a in infos], list(infos.values()))
+
+    def _idle(self) -> tuple[list[dict[str, ShieldReport]], np.ndarray, np.ndarray]:
+        zeros = np.zeros((self.num_envs, self.n_agents, 4))
+        return [{} for _ in range(self.num_envs)], zeros, zeros.copy()
+
+    def _telemetry(
+        self, reports: list[dict[str, ShieldReport]], proposed: np.ndarray, action: np.ndarray
+    ) -> dict[str, np.ndarray]:
+        """``infos["shield"]`` (class docstring) from the step's reports."""
+        shape = (self.num_envs, self.n_agents)
+        out = {
+            "active": np.zeros(shape, bool),
+            "correction_norm": np.zeros(shape),
+            "fallback": np.zeros(shape, bool),
+            "hard_violation": np.zeros(shape),
+            "min_hard_h": np.full(shape, np.inf),
+        }
+        index = self._index
+        for k, world in enumerate(reports):
+            for name, rep in world.items():
+                i = index[name]
+                out["active"][k, i] = rep.active
+                out["correction_norm"][k, i] = rep.correction_norm
+                out["fallback"][k, i] = rep.status == "fallback"
+                out["hard_violation"][k, i] = rep.hard_violation
+                out["min_hard_h"][k, i] = rep.min_hard_h
+        out["proposed"], out["action"] = proposed, action
+        return out
