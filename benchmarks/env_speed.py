@@ -4,7 +4,8 @@
 
 Prints, per team size, the median over repeats of steps/s, agent-steps/s and us per agent-step,
 the real-time factor at 80 Hz and the per-agent cost relative to n = 3; then the same for
-``vector_env(num_envs=K)`` at each ``--vector-n`` (array infos, autoreset) beside the ParallelEnv.
+``vector_env(num_envs=K)`` at each ``--vector-n`` (array infos, autoreset) beside the ParallelEnv,
+and ``VectorCBFShield`` over it (n = 3) beside the bare vector env.
 """
 
 from __future__ import annotations
@@ -18,6 +19,7 @@ import numpy as np
 
 from uavtrack_env import uavtrack_v0
 from uavtrack_env.config import MAX_EPISODE_STEPS
+from uavtrack_env.wrappers import VectorCBFShield
 
 
 def steps_per_second(n: int, steps: int, seed: int) -> float:
@@ -39,8 +41,11 @@ def steps_per_second(n: int, steps: int, seed: int) -> float:
     return steps / elapsed
 
 
-def vector_agent_steps_per_second(k: int, steps: int, seed: int, n: int = 3) -> float:
-    """Agent-steps/s of ``vector_env(num_envs=k)`` with n UAVs (rows that took part in a step)."""
+def vector_agent_steps_per_second(
+    k: int, steps: int, seed: int, n: int = 3, shield: bool = False
+) -> float:
+    """Agent-steps/s of ``vector_env(num_envs=k)`` with n UAVs (rows that took part in a step),
+    wrapped in `VectorCBFShield` (preset ``tuned``) with ``shield``."""
     env = uavtrack_v0.vector_env(
         k,
         scenario="random",
@@ -48,6 +53,8 @@ def vector_agent_steps_per_second(k: int, steps: int, seed: int, n: int = 3) -> 
         max_cycles=MAX_EPISODE_STEPS,
         terminate_on_collision="agent",
     )
+    if shield:
+        env = VectorCBFShield(env)
     rng = np.random.default_rng(seed)
     env.reset(seed=seed)
     elapsed, rows = 0.0, 0
@@ -103,6 +110,18 @@ def main() -> None:
                 f"per agent-step, {1e6 / vec / base:.2f} x n = {args.vector_n[0]}'s); "
                 f"ParallelEnv n = 3: {par:.0f}, ratio {vec / par:.2f}"
             )
+        steps = max(1, args.steps // k)
+        bare = statistics.median(
+            vector_agent_steps_per_second(k, steps, s) for s in range(args.repeats)
+        )
+        shielded = statistics.median(
+            vector_agent_steps_per_second(k, steps, s, shield=True) for s in range(args.repeats)
+        )
+        print(
+            f"VectorCBFShield(vector_env(num_envs={k})), n = 3: {shielded:.0f} agent-steps/s "
+            f"({1e6 / shielded:.1f} us per agent-step); bare {bare:.0f}, "
+            f"ratio {shielded / bare:.2f}"
+        )
 
 
 if __name__ == "__main__":

@@ -4,8 +4,8 @@
 
 Per configuration, the median over repeats of: agent-steps/s of ``PPO.learn`` (rollouts + updates,
 SB3 defaults of train.ppo but n_epochs as given) and of stepping train.ppo's VecEnv alone with
-random actions (collection only: `VectorSharedPolicyVecEnv` unshielded, `SharedPolicyVecEnv`
-over shielded copies), plus the shield's slowdown ratio. One torch thread; random
+random actions (collection only: `VectorSharedPolicyVecEnv`, shielded by `VectorCBFShield`),
+plus the shield's slowdown ratio. One torch thread; random
 worlds, integrator dynamics, 1200-step episodes (as train.ppo).
 """
 

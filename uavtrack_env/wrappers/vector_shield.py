@@ -83,11 +83,9 @@ class VectorCBFShield:
         live = active[..., None]
         infos["shield"] = self._telemetry(reports, u / self._scale * live, certified * live)
         ended = infos.get("_final_obs", np.zeros(self.num_envs, bool))
-        for k in range(self.num_envs):
-            if ended[k]:
-                self._restart(k)
-            else:
-                self._observe(k)
+        self._observe([k for k in range(self.num_envs) if not ended[k]])
+        for k in np.flatnonzero(ended):
+            self._restart(k)
         return obs, rewards, terms, truncs, infos
 
     def close(self) -> None:
@@ -105,13 +103,17 @@ class VectorCBFShield:
         env = self.vector.envs[k]
         for agent in self.onboard[k]:
             agent.reset(env.layout, env.possible_agents)
-        self._observe(k)
+        self._observe([k])
 
-    def _observe(self, k: int) -> None:
-        """World k's UAVs that took part in the step take their new measurements."""
-        infos = self.vector.sensor_infos(k)
-        team = self.onboard[k]
-        observe_team([team[self._index[a]] for a in infos], list(infos.values()))
+    def _observe(self, worlds: list[int]) -> None:
+        """The UAVs of these worlds that took part in the step take their new measurements (all
+        their UKFs in one batched pass)."""
+        agents, infos = [], []
+        for k in worlds:
+            for name, info in self.vector.sensor_infos(k).items():
+                agents.append(self.onboard[k][self._index[name]])
+                infos.append(info)
+        observe_team(agents, infos)
 
     def _idle(self) -> tuple[list[dict[str, ShieldReport]], np.ndarray, np.ndarray]:
         zeros = np.zeros((self.num_envs, self.n_agents, 4))
