@@ -4,8 +4,8 @@ Setting: n = 3 UAVs, seeded random worlds, uniform random actions in [-1, 1]^4 (
 active on most steps) and small actions (|a| <= 0.05, it almost never is). Pinned to one core with
 single-threaded BLAS. The shield's cost per agent-step is split into
 
-* certify: `CBFShield.certify` = rows + CBF-QP (47) (the goal: <= 100 us per agent-step; the
-  SafetyContext is built when the agent observes its info, which `total` includes);
+* certify: one agent's certification = rows + CBF-QP (47) (the SafetyContext is built when the
+  agent observes its info, which ``observe`` includes);
 * ukf: the team's UKF step that gives the shield its target estimates (`step_team`, one batched
   pass for all agents), per agent-step;
 * observe: the UKF plus the team-mates' messages and the safety context, per agent-step;
@@ -20,7 +20,10 @@ acted); component costs are medians. Unshielded random actions crash UAVs, which
 acting (``terminate_on_collision="agent"``): a bare step then has fewer agents than a shielded
 one, so the per-agent-step figures are the fair comparison.
 
-Run: python benchmarks/shield_overhead.py [--steps 2000] [--repeats 3]
+Then the same for ``VectorCBFShield`` over ``vector_env(--vector)``: bare and shielded
+agent-steps/s, and its own time per agent-step (its step minus the vector env's step inside).
+
+Run: python benchmarks/shield_overhead.py [--steps 2000] [--repeats 3] [--vector 16]
 """
 
 from __future__ import annotations
@@ -37,7 +40,7 @@ import time  # noqa: E402
 import numpy as np  # noqa: E402
 
 from uavtrack_env import onboard, uavtrack_v0  # noqa: E402
-from uavtrack_env.wrappers import CBFShield  # noqa: E402
+from uavtrack_env.wrappers import CBFShield, VectorCBFShield  # noqa: E402
 
 N_UAVS = 3
 _UKF_TIMES: list[float] = []
@@ -80,7 +83,8 @@ def run(shield: bool, amplitude: float, steps: int, seed: int) -> dict[str, np.n
         env = CBFShield(raw) if shield else raw
         env.reset(seed=seed + episode)
         if shield:  # instance-level wrappers: the class itself has no timing code
-            env.certify = _timed(env.certify, times["certify"])
+            for agent in env.onboard.values():
+                agent.certify_trusted = _timed(agent.certify_trusted, times["certify"])
             env._observe = _timed(env._observe, times["observe"])
             raw._step_checked = _timed(raw._step_checked, times["env"])
             raw.validate_actions = _timed(raw.validate_actions, times["validate"])
@@ -98,12 +102,52 @@ def run(shield: bool, amplitude: float, steps: int, seed: int) -> dict[str, np.n
     return {k: np.asarray(v) for k, v in times.items()}
 
 
+def run_vector(shield: bool, amplitude: float, steps: int, seed: int, k: int) -> dict:
+    """Total and inner (the vector env's own step) times (s) and agent-steps of ``steps`` steps
+    of ``vector_env(k)``, bare or under `VectorCBFShield`."""
+    venv = uavtrack_v0.vector_env(
+        k, scenario="random", n_uavs=N_UAVS, max_cycles=500, terminate_on_collision="agent"
+    )
+    env = VectorCBFShield(venv) if shield else venv
+    inner: list[float] = []
+    venv.step = _timed(venv.step, inner)  # instance-level: the class has no timing code
+    env.reset(seed=seed)
+    rng = np.random.default_rng(seed)
+    total, rows = 0.0, 0
+    for _ in range(steps):
+        actions = amplitude * rng.uniform(-1.0, 1.0, (k, N_UAVS, 4))
+        rows += int(venv._active.sum())
+        t0 = time.perf_counter()
+        env.step(actions)
+        total += time.perf_counter() - t0
+    env.close()
+    return {"total": total, "inner": float(np.sum(inner)), "rows": rows}
+
+
+def vector_section(args: argparse.Namespace, label: str, amp: float) -> None:
+    """Bare vs shielded ``vector_env``, and `VectorCBFShield`'s own time per agent-step."""
+    k = args.vector
+    steps = max(1, args.steps // k * N_UAVS)
+    bare_a, shield_a, own = [], [], []
+    for r in range(args.repeats):
+        bare = run_vector(False, amp, steps, args.seed + 1000 * r, k)
+        shielded = run_vector(True, amp, steps, args.seed + 1000 * r, k)
+        bare_a.append(bare["total"] / bare["rows"])
+        shield_a.append(shielded["total"] / shielded["rows"])
+        own.append((shielded["total"] - shielded["inner"]) / shielded["rows"])
+    ba, sa = np.median(bare_a), np.median(shield_a)
+    print(f"== VectorCBFShield(vector_env({k})), n={N_UAVS}, {label} ({args.repeats} x {steps})")
+    print(f"  agent-steps/s bare {1 / ba:8.0f}   shielded {1 / sa:8.0f}   ratio {ba / sa:.2f}")
+    print(f"  shield's own time per agent-step (mean) {np.median(own) * 1e6:6.1f} us (goal 100)")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--steps", type=int, default=2000, help="env steps per configuration")
     ap.add_argument("--repeats", type=int, default=3, help="repeat each configuration")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--all-cores", action="store_true", help="do not pin to one core")
+    ap.add_argument("--vector", type=int, default=16, help="worlds of the vector_env (0: skip)")
     args = ap.parse_args()
     onboard.step_team = _timed(onboard.step_team, _UKF_TIMES)
     if not args.all_cores and hasattr(os, "sched_setaffinity"):
@@ -143,6 +187,8 @@ def main() -> None:
             f"   total overhead vs bare (mean) {(sa - ba) * 1e6:6.1f} us"
         )
         print(f"  certify median per repeat (us): {', '.join(f'{c * 1e6:.1f}' for c in cert)}")
+        if args.vector:
+            vector_section(args, label, amp)
 
 
 if __name__ == "__main__":
