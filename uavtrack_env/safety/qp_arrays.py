@@ -120,3 +120,77 @@ def row_violations(An, bn, v, soft, active_tol):  # pragma: no cover (compiled)
     over_soft = np.flatnonzero(over & soft)
     over_hard = np.flatnonzero(over & ~soft)
     return active, over_soft, over_hard, viol, viol[over_soft].sum(), viol[over_hard].sum()
+
+
+@numba.njit(cache=True)
+def triage(
+    u,
+    yaw,
+    velocity,
+    has_velocity,
+    A,
+    b,
+    kind,
+    alpha_v,
+    v_max,
+    w_max,
+    tol,
+    accel_step,
+    lb3,
+    ub3,
+    prune,
+    bounds_kind,
+):  # pragma: no cover (compiled)
+    """The CBF-QP (47) up to its QP (`SafetyFilter.certify`): (stage, v, w, An, bn, kinds, kept,
+    lb, ub).
+
+    The bounds on the camera-frame velocity are Table II's box ``lb3``, ``ub3`` and the speed ball
+    ``alpha_v``, intersected, while a row asks for braking (``A V > b`` at the actual global
+    velocity), with the box ``accel_step`` around that velocity. Stage 0: the nominal ``u`` meets
+    every bound and row (A V^g <= b); 1: ``v``, ``u``'s velocity or its closed-form projection
+    onto the bounds (``bounds_kind`` 0: the ball lies inside the box, 1: the box inside the ball,
+    2: neither), meets every row; 2: a QP is needed, with the camera-frame rows
+    (`camera_rows`) and the bounds lb, ub. ``w``: the yaw rate clipped to ``w_max``.
+    """
+    vx, vy, vz, wn = u[0], u[1], u[2], u[3]
+    w = min(max(wn, -w_max), w_max)
+    c, s = math.cos(yaw), math.sin(yaw)
+    lb, ub = lb3.copy(), ub3.copy()
+    has_box = False
+    if accel_step > 0.0 and has_velocity and b.shape[0] > 0 and not rows_hold(A, b, velocity, tol):
+        x, y, z = velocity[0], velocity[1], velocity[2]
+        vc = (s * x - c * y, -z, c * x + s * y)  # world_to_cam_vec
+        for i in range(3):
+            lb[i] = max(vc[i] - accel_step, lb3[i])
+            ub[i] = min(vc[i] + accel_step, ub3[i])
+        has_box = True
+    v = np.array((vx, vy, vz))
+    in_bounds = vx * vx + vy * vy + vz * vz <= alpha_v**2
+    for i in range(3):
+        if has_box:
+            in_bounds &= lb[i] <= v[i] <= ub[i]
+        else:
+            in_bounds &= abs(v[i]) <= v_max
+    V = np.array((s * vx + c * vz, -c * vx + s * vz, -vy))  # cam_to_world_vec
+    An, bn, kinds, kept = camera_rows(A[:0], b[:0], kind[:0], yaw, alpha_v, prune)
+    if in_bounds and w == wn and rows_hold(A, b, V, tol):
+        return 0, v, w, An, bn, kinds, kept, lb, ub
+    An, bn, kinds, kept = camera_rows(A, b, kind, yaw, alpha_v, prune)
+    closed = in_bounds
+    if not in_bounds:  # the closed-form projection onto the bounds, where there is one
+        if has_box:  # exact when the box's projection lies inside the ball
+            for i in range(3):
+                v[i] = min(max(v[i], lb[i]), ub[i])
+            closed = np.dot(v, v) <= alpha_v**2  # BLAS, as numpy's v @ v
+        elif bounds_kind == 0:
+            norm = math.sqrt(np.dot(v, v))
+            if norm > alpha_v:
+                v = v * (alpha_v / norm)
+            closed = True
+        elif bounds_kind == 1:
+            for i in range(3):
+                v[i] = min(max(v[i], -v_max), v_max)
+            closed = True
+    if closed and rows_hold(An, bn, v, tol):
+        return 1, v, w, An, bn, kinds, kept, lb, ub
+    return 2, np.array((vx, vy, vz)), w, An, bn, kinds, kept, lb, ub

@@ -56,7 +56,6 @@ import numpy as np
 import qpsolvers
 
 from uavtrack_env.config import DT, ControlLimits
-from uavtrack_env.geometry import world_to_cam_vec
 from uavtrack_env.safety.cbf import (
     CONNECT,
     KIND_NAMES,
@@ -69,12 +68,11 @@ from uavtrack_env.safety.cbf import (
 from uavtrack_env.safety.config import CBFConfig
 from uavtrack_env.safety.qp_arrays import (
     INF,
-    camera_rows,
     daqp_bounds,
     meets,
     qp_arrays,
     row_violations,
-    rows_hold,
+    triage,
 )
 from uavtrack_env.validation import Fields as _Fields
 
@@ -260,11 +258,11 @@ class SafetyFilter:
         self.connectivity_margin = 2.1 * dt * self.alpha_v**2 if m is None else float(m)
         # Closed-form projection onto {box} n {ball} exists when one contains the other.
         if self.alpha_v <= self.v_max:
-            self._bounds_kind = "ball"
+            self._bounds_code = 0  # the ball inside the box (`qp_arrays.triage`)
         elif self.alpha_v >= math.sqrt(3.0) * self.v_max:
-            self._bounds_kind = "box"
+            self._bounds_code = 1  # the box inside the ball
         else:
-            self._bounds_kind = None
+            self._bounds_code = 2
         self._rows = RowBuilder(
             cbf,
             obstacle_model=self.options.obstacle_model,
@@ -321,18 +319,23 @@ class SafetyFilter:
     def _certify(
         self, u: np.ndarray, ctx: SafetyContext, rows: CBFRows, t0: float
     ) -> tuple[np.ndarray, ShieldReport]:
-        vx, vy, vz, wn = u.tolist()
-        w = min(max(wn, -self.w_max), self.w_max)
-        box = self._box(ctx, rows)
-        in_bounds = self._within_bounds(vx, vy, vz, box)
-        if in_bounds and w == wn and self._satisfies_rows(rows, ctx.yaw, vx, vy, vz):
+        velocity = ctx.velocity
+        stage, v, w, An, bn, kinds, kept, lb, ub = triage(
+            u, ctx.yaw, _ZEROS3 if velocity is None else velocity, velocity is not None,
+            rows.A, rows.b, rows.kind, self.alpha_v, self.v_max, self.w_max, self.options.tol,
+            self._accel_step, self._lb3, self._ub3, self.options.prune, self._bounds_code,
+        )  # fmt: skip
+        if stage == 0:
             return u, ShieldReport(
                 "nominal", False, 0.0, 0.0, [], time_us=(time.perf_counter() - t0) * 1e6,
                 rows=rows, neighbour_ids=ctx.neighbour_ids,
             )  # fmt: skip
-
-        An, bn, kinds, kept = self._qp_rows(rows, ctx.yaw)
-        v, status, solver, calls = self._safe_velocity(u[:3], in_bounds, An, bn, kinds, box)
+        status, solver, calls = "optimal", "closed-form", 0
+        if stage == 2:
+            try:
+                v, status, solver, calls = self._solve_layers(v, An, bn, kinds, lb, ub)
+            except Exception:  # never let a numerical failure take the UAV down: brake
+                v, status, solver, calls = np.zeros(3), "fallback", "brake", 0
         u_safe = np.array((v[0], v[1], v[2], w))
         if not math.isfinite(u_safe.sum()):  # defensive: never hand out NaN
             u_safe = np.array((0.0, 0.0, 0.0, w))
@@ -341,87 +344,7 @@ class SafetyFilter:
             status, u, u_safe, rows, ctx, t0, solver, calls, An, bn, kinds >= CONNECT, kept
         )
 
-    def _box(self, ctx: SafetyContext, rows: CBFRows) -> tuple[np.ndarray, np.ndarray] | None:
-        """Per-call bounds on the camera-frame velocity command: Table II's box intersected with
-        the acceleration box around the actual velocity (`ShieldOptions.accel_bound`); None when
-        Table II's box alone applies.
-
-        The acceleration box is needed only while a row asks for braking (``A v > b`` at the
-        actual velocity v): otherwise every row holds at u = v and at the certified u, so also
-        at every point between, where the plant's clipped acceleration takes it."""
-        if self._accel_step <= 0.0 or ctx.velocity is None:
-            return None
-        if not len(rows.b) or (rows.A @ ctx.velocity - rows.b <= self.options.tol).all():
-            return None
-        v = world_to_cam_vec(ctx.velocity, ctx.yaw)
-        step = self._accel_step
-        return np.maximum(v - step, self._lb3), np.minimum(v + step, self._ub3)
-
-    def _within_bounds(
-        self, vx: float, vy: float, vz: float, box: tuple[np.ndarray, np.ndarray] | None = None
-    ) -> bool:
-        """The velocity inside Table II's box (or ``box``) and the speed ball alpha_v."""
-        if vx * vx + vy * vy + vz * vz > self.alpha_v**2:
-            return False
-        if box is not None:
-            v = np.array((vx, vy, vz))
-            return bool((v >= box[0]).all() and (v <= box[1]).all())
-        vm = self.v_max
-        return abs(vx) <= vm and abs(vy) <= vm and abs(vz) <= vm
-
-    def _satisfies_rows(self, rows: CBFRows, yaw: float, vx: float, vy: float, vz: float) -> bool:
-        """The camera-frame velocity, in the global frame, meets every row A V^g <= b (47)
-        within `ShieldOptions.tol`."""
-        c, s = math.cos(yaw), math.sin(yaw)
-        V = np.array((s * vx + c * vz, -c * vx + s * vz, -vy))  # cam_to_world_vec
-        return rows_hold(rows.A, rows.b, V, self.options.tol)
-
-    def _qp_rows(
-        self, rows: CBFRows, yaw: float
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """The rows of the QP in camera coordinates (A V^g = A R v_c), normalised to unit normals:
-        An, bn, their families (`CBFRows.kind`) and their indices in ``rows``. Zero rows that
-        hold are dropped, and with `ShieldOptions.prune` those the speed ball implies."""
-        return camera_rows(rows.A, rows.b, rows.kind, yaw, self.alpha_v, self.options.prune)
-
-    def _safe_velocity(
-        self,
-        v_hat: np.ndarray,
-        in_bounds: bool,
-        An: np.ndarray,
-        bn: np.ndarray,
-        kinds: np.ndarray,
-        box: tuple[np.ndarray, np.ndarray] | None = None,
-    ) -> tuple[np.ndarray, str, str, int]:
-        """The velocity of the QP (47): the closed-form projection onto the bounds if it meets
-        every row, else the layered QPs (a numerical failure brakes). Velocity, status, solver,
-        QP calls."""
-        status, solver, calls = "optimal", "closed-form", 0
-        v = v_hat if in_bounds else self._project_bounds(v_hat, box)
-        if v is None or not rows_hold(An, bn, v, self.options.tol):
-            lb, ub = box if box is not None else (self._lb3, self._ub3)
-            try:
-                v, status, solver, calls = self._solve_layers(v_hat, An, bn, kinds, lb, ub)
-            except Exception:  # never let a numerical failure take the UAV down: brake
-                v, status, solver, calls = np.zeros(3), "fallback", "brake", 0
-        return v, status, solver, calls
-
     # ----------------------------------------------------------------- layers
-    def _project_bounds(
-        self, v: np.ndarray, box: tuple[np.ndarray, np.ndarray] | None = None
-    ) -> np.ndarray | None:
-        """Closed-form Euclidean projection onto Table II's box (or ``box``) intersected with the
-        speed ball; None where there is no closed form."""
-        if box is not None:  # exact when the box's projection lies inside the ball
-            p = np.clip(v, box[0], box[1])
-            return p if p @ p <= self.alpha_v**2 else None
-        if self._bounds_kind == "ball":
-            n = math.sqrt(v @ v)
-            return v * (self.alpha_v / n) if n > self.alpha_v else v
-        if self._bounds_kind == "box":
-            return np.clip(v, -self.v_max, self.v_max)
-        return None
-
     def _solve_layers(self, v_hat, An, bn, kinds, lb3, ub3):
         """Hard QP, relaxed QP, then the fallbacks by row priority, then brake (module
         docstring): each fallback keeps the rows of the known geometry hard while it can."""
@@ -548,6 +471,9 @@ class SafetyFilter:
             rows=rows,
             neighbour_ids=ctx.neighbour_ids,
         )
+
+
+_ZEROS3 = np.zeros(3)
 
 
 def _norm(x: np.ndarray) -> float:
