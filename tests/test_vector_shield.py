@@ -142,3 +142,22 @@ def test_shielded_vector_adapter_equals_shielded_copies_row_by_row():
     assert interventions > 20
     worlds.close()
     copies.close()
+
+
+def test_full_infos_certify_the_same():
+    """With ``full_infos`` the onboard stacks read the worlds' info dicts instead of the batch's
+    arrays: the same certified actions and observations, through autoresets."""
+    runs = []
+    for full in (False, True):
+        venv = uavtrack_v0.vector_env(2, full_infos=full, scenario="random", max_cycles=30)
+        env = VectorCBFShield(venv)
+        env.reset(seed=2)
+        rng = np.random.default_rng(0)
+        seen = []
+        for _ in range(70):
+            obs, *_, infos = env.step(rng.uniform(-1.0, 1.0, (2, 3, 4)))
+            seen += [infos["shield"]["action"].copy(), obs.copy()]
+        runs.append(seen)
+        env.close()
+    for a, b in zip(*runs, strict=True):
+        np.testing.assert_array_equal(a, b)
