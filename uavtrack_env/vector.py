@@ -32,7 +32,9 @@ actions: same observations, rewards, terminations and infos (tested).
 ParallelEnv runs with K = 1); each world keeps its own PyBullet client, car and random stream.
 With ``full_infos=True`` the worlds step one by one through their ParallelEnvs instead (the same
 arrays, bit for bit, tested), so that each can build its info dicts. SB3:
-`uavtrack_env.wrappers.sb3.VectorSharedPolicyVecEnv`.
+`uavtrack_env.wrappers.sb3.VectorSharedPolicyVecEnv`. The CBF shield:
+`uavtrack_env.wrappers.VectorCBFShield`, which reads each world's measurements, own states and
+messages through ``sensor_infos(k)``.
 """
 
 from __future__ import annotations
