@@ -420,8 +420,12 @@ class UAVTrackEnv(ParallelEnv):
     ) -> dict[str, dict]:
         """Each live agent's info dict: cost, violations, reward terms, measurement, truth."""
         truths = self._truths(m)
+        rows = [self._index[a] for a in self.agents]
+        state = (self.position, self.yaw, self.velocity, self.yaw_rate)
+        sensed = sensor_infos(rows, self.possible_agents, m.detections, m.received, state)
         return {
-            a: self._agent_info(self._index[a], m, score, u, clipped, truths) for a in self.agents
+            a: self._agent_info(i, m, score, u, clipped, truths, sense)
+            for a, i, sense in zip(self.agents, rows, sensed, strict=True)
         }
 
     def _agent_info(
@@ -432,6 +436,7 @@ class UAVTrackEnv(ParallelEnv):
         u: np.ndarray,
         clipped: np.ndarray,
         truths: dict[str, Any],
+        sensed: dict[str, dict],
     ) -> dict:
         violations = {
             "collision": bool(score.collided[i]),
@@ -439,7 +444,6 @@ class UAVTrackEnv(ParallelEnv):
             "occlusion": bool(score.occluded[i]),
         }
         costs = {k: float(v) for k, v in violations.items()}
-        state = (self.position, self.yaw, self.velocity, self.yaw_rate)
         info = {
             "cost": costs["collision"] + costs["disconnection"] + costs["occlusion"],
             "costs": costs,
@@ -452,7 +456,7 @@ class UAVTrackEnv(ParallelEnv):
             "reward_effort": -float(score.effort[i]),
             "action_clipped": bool(clipped[i]),
             "n_clipped_actions": int(self._clip_count[i]),
-            **sensor_info(i, self.possible_agents, m.detections, m.received, state),
+            **sensed,
             "reference": self.references[i].copy(),
             "truth": self._truth(i, m, truths),
         }
@@ -573,35 +577,46 @@ class UAVTrackEnv(ParallelEnv):
         return self.world.__reduce_ex__(protocol)  # refuses: the world owns a live client
 
 
-def sensor_info(
-    i: int,
+def sensor_infos(
+    rows: list[int],
     names: list[str],
     det: Detections,
     received: np.ndarray,
     state: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
-) -> dict[str, dict]:
-    """What UAV i's own sensors and radio report, the part of its info an onboard stack reads:
-    ``measurement`` (the detector's report; u, v, depth, psi None when not detected), ``own``
-    (position, yaw, velocity, yaw_rate from ``state``) and ``neighbours`` (name -> position of
-    each team-mate heard, ``received[i]``)."""
+) -> list[dict[str, dict]]:
+    """What the sensors and radio of each UAV i in ``rows`` report, the part of its info an
+    onboard stack reads: ``measurement`` (the detector's report; u, v, depth, psi None when not
+    detected), ``own`` (position, yaw, velocity, yaw_rate from ``state``) and ``neighbours``
+    (name -> position of each team-mate heard, ``received[i]``)."""
     position, yaw, velocity, yaw_rate = state
-    ok = bool(det.detected[i])
-    return {
-        "measurement": {
-            "detected": ok,
-            "u": float(det.u[i]) if ok else None,
-            "v": float(det.v[i]) if ok else None,
-            "depth": float(det.depth[i]) if ok else None,
-            "psi": float(det.psi[i]) if ok else None,
-            "visible_fraction": float(det.visible_fraction[i]),
-            "truncated_u": ok and bool(det.truncated[i, 0]),
-            "truncated_v": ok and bool(det.truncated[i, 1]),
-        },
-        "own": {
-            "position": position[i].copy(),
-            "yaw": float(yaw[i]),
-            "velocity": velocity[i].copy(),
-            "yaw_rate": float(yaw_rate[i]),
-        },
-        "neighbours": {names[j]: position[j].copy() for j in np.flatnonzero(received[i])},
-    }
+    detected, visible = det.detected.tolist(), det.visible_fraction.tolist()
+    u, v, depth, psi = det.u.tolist(), det.v.tolist(), det.depth.tolist(), det.psi.tolist()
+    cut, heard = det.truncated.tolist(), received.tolist()
+    yaws, rates = yaw.tolist(), yaw_rate.tolist()
+    out = []
+    for i in rows:
+        ok = detected[i]
+        out.append(
+            {
+                "measurement": {
+                    "detected": ok,
+                    "u": u[i] if ok else None,
+                    "v": v[i] if ok else None,
+                    "depth": depth[i] if ok else None,
+                    "psi": psi[i] if ok else None,
+                    "visible_fraction": visible[i],
+                    "truncated_u": ok and cut[i][0],
+                    "truncated_v": ok and cut[i][1],
+                },
+                "own": {
+                    "position": position[i].copy(),
+                    "yaw": yaws[i],
+                    "velocity": velocity[i].copy(),
+                    "yaw_rate": rates[i],
+                },
+                "neighbours": {
+                    names[j]: position[j].copy() for j, got in enumerate(heard[i]) if got
+                },
+            }
+        )
+    return out

@@ -47,7 +47,7 @@ from gymnasium.vector import AutoresetMode
 
 from . import core
 from .core import Obstacles, Score
-from .env import UAVTrackEnv, sensor_info
+from .env import UAVTrackEnv, sensor_infos
 
 VIOLATIONS = ("collision", "disconnection", "occlusion")
 
@@ -297,19 +297,17 @@ class UAVTrackVectorEnv:
         return np.clip(a, -1.0, 1.0) * self._scale, clipped
 
     def sensor_infos(self, k: int) -> dict[str, dict]:
-        """World k's `env.sensor_info` of every agent of its latest step (or of its reset, if it
+        """World k's `env.sensor_infos` of every agent of its latest step (or of its reset, if it
         reset since), by agent: the measurement, own state and messages an onboard stack reads
         (`uavtrack_env.wrappers.VectorCBFShield`)."""
         infos = self._world_infos[k]
         if infos is not None:
             return infos
         m, names = self._sensed, self.possible_agents
-        det, received = m.detections.world(k), m.received[k]
+        rows = np.flatnonzero(self._stepped[k]).tolist()
         state = tuple(a[k] for a in self._state)
-        return {
-            names[i]: sensor_info(i, names, det, received, state)
-            for i in np.flatnonzero(self._stepped[k])
-        }
+        sensed = sensor_infos(rows, names, m.detections.world(k), m.received[k], state)
+        return {names[i]: info for i, info in zip(rows, sensed, strict=True)}
 
     # ----------------------------------------------------------------- extras
     def close(self) -> None:

@@ -69,7 +69,7 @@ class VectorCBFShield:
         u_safe = u.copy()
         changed = np.zeros(active.shape, bool)
         reports = [{} for _ in range(self.num_envs)]
-        for k, i in zip(*np.nonzero(active), strict=True):
+        for k, i in np.argwhere(active).tolist():
             agent = self.onboard[k][i]
             u_safe[k, i], rep = agent.certify_trusted(u[k, i])
             reports[k][agent.name] = rep
