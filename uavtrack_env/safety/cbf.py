@@ -37,6 +37,7 @@ import numpy as np
 from uavtrack_env.safety.barrier_rows import all_rows, box_sdists
 from uavtrack_env.safety.config import CBFConfig
 from uavtrack_env.safety.occlusion import POINT_MODES
+from uavtrack_env.safety.second_order import second_order_b
 
 KIND_NAMES = ("uav", "obstacle", "target", "floor", "connect", "occlusion")
 """Row family names, indexed by `CBFRows.kind`."""
@@ -403,159 +404,29 @@ class RowBuilder:
         by other hard rows gives its pair row up in a fallback) as long as the team-mate does
         not accelerate towards it.
         """
-        cbf, tau = self.cbf, self.lag_tau
+        cbf = self.cbf
         v = ctx.velocity
         if v is None:
             raise ValueError("second-order rows (lag_tau > 0) need SafetyContext.velocity")
-        nb_v = _neighbour_velocities(ctx)
-        n = len(h)
-        dv = np.tile(v, (n, 1))
-        curv = np.zeros(n)
-        gamma1 = np.zeros(n)
-        share = np.ones(n)
-        ends = np.cumsum(sizes)
-        uav, obs, tgt, flr, con, _ = (slice(e - k, e) for e, k in zip(ends, sizes, strict=True))
-        for sl, g1 in ((uav, cbf.gamma_s), (con, cbf.gamma_c)):
-            dv[sl] = v - nb_v[index[sl]]
-            sign = 2.0 if sl is uav else -2.0  # H = 2I for (20), -2I for (29)
-            curv[sl] = sign * np.einsum("ij,ij->i", dv[sl], dv[sl])
-            gamma1[sl] = g1
-        grad = -A
-        if sizes[1]:
-            curv[obs] = self._obstacle_curvature(v, grad[obs], h[obs])
-            gamma1[obs] = cbf.gamma_obstacle
-        if sizes[2]:
-            dv[tgt] = v - ctx.target_velocity
-            if ctx.target_growth > 0.0:  # the box's faces close in: like a faster car
-                g = grad[tgt][0]
-                dv[tgt] -= ctx.target_growth * g / max(float(np.linalg.norm(g)), 1e-12)
-            curv[tgt] = self._target_curvature(
-                ctx.target_heading, grad[tgt][0], dv[tgt][0], h[tgt][0]
-            )
-            gamma1[tgt] = cbf.gamma_obstacle
-        gamma1[flr] = cbf.gamma_z  # H = 0
-        sel = kind < OCCLUSION
-        hdot = np.einsum("ij,ij->i", grad, dv)
-        need = tau * curv + (tau * gamma1 + 1.0) * hdot + gamma1 * h
-        second = -(grad @ v)
-        for sl, g1 in ((uav, cbf.gamma_s), (con, cbf.gamma_c)):
-            if ctx.neighbour_radius is not None and sl.stop > sl.start:
-                own, drop = self._uncertain_pair(ctx, v, A[sl], dv[sl], index[sl], sl is uav, g1)
-                second[sl] -= own
-                need[sl] -= drop
-            # a pair that must brake (need < 0): each UAV brakes for the pair on its own
-            share[sl] = np.where(need[sl] < 0.0, 1.0, 0.5)
-        second += share * need
-        if self.brake_decel > 0.0:
-            second = np.minimum(second, self._braking(ctx, A, h, dv, gamma1, index, sizes))
-        out = b.copy()
-        out[sel] = (second - margin)[sel]
-        return out
-
-    def _braking(
-        self,
-        ctx: SafetyContext,
-        A: np.ndarray,
-        h: np.ndarray,
-        dv: np.ndarray,
-        gamma1: np.ndarray,
-        index: np.ndarray,
-        sizes: tuple[int, ...],
-    ) -> np.ndarray:
-        """Right-hand sides of braking-distance rows on the same A as the collision, car, floor and
-        connectivity rows (not in the paper): each keeps ``s - w^2 / (2 a) >= 0``.
-
-        s is the distance left before the row's limit (to the clearance of an obstacle or of the
-        car, the floor, R_s from a team-mate, or R_c), w > 0 the speed closing it along
-        m = A / ||A|| (relative to the car's estimated velocity for the car), a the deceleration
-        one UAV guarantees (`brake_decel`; a team-mate brakes as much, so a pair has 2a). With
-        v-dot = (u - v) / tau (exact under `ShieldOptions.accel_bound`) and the distance convex
-        along the motion, ``m . u <= m . v + tau a (gamma s_b / w - 1)`` keeps
-        ``s_b = s - w^2 / (2 a_pair)`` from decreasing faster than ``-gamma s_b``: at s_b = 0 it
-        asks for a deceleration of exactly a. Rows not closing (w <= 0) get +inf.
-        """
-        cbf, a, tau = self.cbf, self.brake_decel, self.lag_tau
-        out = np.full(len(h), np.inf)
-        norm = np.sqrt(np.einsum("ij,ij->i", A, A))
-        ends = np.cumsum(sizes)
-        uav, obs, tgt, flr, con, _ = (slice(e - k, e) for e, k in zip(ends, sizes, strict=True))
-        rho = ctx.neighbour_radius
-        sigma = ctx.neighbour_velocity_radius
-        gap = np.zeros(len(h))
-        pair = np.zeros(len(h), bool)
-        pair[uav] = pair[con] = True
+        rho, sigma = ctx.neighbour_radius, ctx.neighbour_velocity_radius
         standoff = cbf.obstacle_clearance if self.obstacle_model == "box" else cbf.r_s
-        gap[obs] = np.sqrt(np.maximum(h[obs] + standoff**2, 0.0)) - standoff
-        clearance = cbf.obstacle_clearance  # the car's box barrier (`barrier_rows.target_row`)
-        gap[tgt] = np.sqrt(np.maximum(h[tgt] + clearance**2, 0.0)) - clearance
-        gap[flr] = h[flr]
-        dist = 0.5 * norm
-        gap[uav] = dist[uav] - cbf.r_s
-        gap[con] = cbf.r_c - dist[con]
-        closing = np.einsum("ij,ij->i", A, dv) / np.maximum(norm, 1e-12)
-        for sl in (uav, con):
-            if rho is not None and sl.stop > sl.start:
-                gap[sl] -= rho[index[sl]]
-                if sigma is not None:
-                    closing[sl] += sigma[index[sl]]
-        decel = np.where(pair, 2.0 * a, a)
-        w = closing
-        rows = (w > 1e-9) & (norm > 1e-12)
-        rows[len(h) - sizes[5] :] = False  # occlusion rows stay as they are
-        if not rows.any():
-            return out
-        w = w[rows]
-        s_b = gap[rows] - w * w / (2.0 * decel[rows])
-        m_v = np.einsum("ij,j->i", A[rows], ctx.velocity) / norm[rows]
-        beta = m_v + tau * a * (gamma1[rows] * s_b / w - 1.0)
-        out[rows] = norm[rows] * beta
-        return out
-
-    def _uncertain_pair(
-        self,
-        ctx: SafetyContext,
-        v: np.ndarray,
-        A: np.ndarray,
-        dv: np.ndarray,
-        index: np.ndarray,
-        collision: bool,
-        gamma1: float,
-    ) -> tuple[np.ndarray, np.ndarray]:
-        """How much a second-order pair row drops for neighbours known only within a ball
-        (position radius rho, velocity radius sigma; their h is already the ball's worst case):
-        (the drop of the UAV's own terms ``-grad h . v`` and ``A u``, the drop of the pair's
-        condition ``tau dv' H dv + (tau gamma1 + 1) grad h . dv``, of which the UAV takes its
-        share).
-
-        With d = d_hat + e, ||e|| <= rho and v_j = v_hat + f, ||f|| <= sigma, each term of the
-        row is bounded over the balls: ``-grad h . v`` by ``2 rho ||v||``, the curvature
-        ``+-2 ||dv||^2`` by its value at ``||dv|| -+ sigma``, ``grad h . dv`` by ``2 (rho ||dv||
-        + ||d|| sigma + rho sigma)`` and ``A u`` (``||u|| <= alpha_v``) by ``2 rho alpha_v``.
-        """
-        rho = ctx.neighbour_radius[index]
-        sigma = (
-            np.zeros_like(rho)
-            if ctx.neighbour_velocity_radius is None
-            else ctx.neighbour_velocity_radius[index]
-        )
-        dvn = np.sqrt(np.einsum("ij,ij->i", dv, dv))
-        if collision:  # H = 2I: the curvature is at least 2 (||dv|| - sigma)_+^2
-            curv_drop = 2.0 * (dvn * dvn - np.maximum(dvn - sigma, 0.0) ** 2)
-        else:  # H = -2I: at least -2 (||dv|| + sigma)^2
-            curv_drop = 2.0 * ((dvn + sigma) ** 2 - dvn * dvn)
-        dn = 0.5 * np.sqrt(np.einsum("ij,ij->i", A, A))
-        hdot_drop = 2.0 * (rho * dvn + dn * sigma + rho * sigma)
-        tau = self.lag_tau
-        own = 2.0 * rho * (float(np.linalg.norm(v)) + self.cbf.alpha_v)
-        return own, tau * curv_drop + (tau * gamma1 + 1.0) * hdot_drop
-
-    def _obstacle_curvature(self, v: np.ndarray, grad: np.ndarray, h: np.ndarray) -> np.ndarray:
-        """v' H v of the obstacle rows (box or point barrier, not in the paper), grad = grad h."""
-        if self.obstacle_model == "point":
-            return 2.0 * (v @ v)
-        # H = 2 diag(axes outside the slab) outside, -2 n n' inside the box
-        sign = np.where(h + self.cbf.obstacle_clearance**2 >= 0.0, 2.0, -2.0)
-        return sign * ((grad != 0.0) @ (v * v))
+        grad = -A
+        dv_t, curv_t = _ZEROS3, 0.0
+        if sizes[2]:  # the car's row: its velocity relative to the car and its curvature
+            t = sizes[0] + sizes[1]
+            dv_t = v - ctx.target_velocity
+            if ctx.target_growth > 0.0:  # the box's faces close in: like a faster car
+                g = grad[t]
+                dv_t = dv_t - ctx.target_growth * g / max(float(np.linalg.norm(g)), 1e-12)
+            curv_t = self._target_curvature(ctx.target_heading, grad[t], dv_t, h[t])
+        return second_order_b(
+            A, h, b, margin, kind, index, np.array(sizes), v, _neighbour_velocities(ctx),
+            grad @ v, dv_t, curv_t, rho is not None,
+            _ZEROS3 if rho is None else rho, sigma is not None, _ZEROS3 if sigma is None else sigma,
+            self.lag_tau, cbf.gamma_s, cbf.gamma_c, cbf.gamma_obstacle, cbf.gamma_z,
+            cbf.obstacle_clearance, cbf.obstacle_clearance**2, standoff, standoff**2,
+            self.obstacle_model == "box", cbf.r_s, cbf.r_c, cbf.alpha_v, self.brake_decel,
+        )  # fmt: skip
 
     def _target_curvature(
         self, heading: float, grad: np.ndarray, dv: np.ndarray, h: float

@@ -1,0 +1,240 @@
+"""Second-order CBF right-hand sides for a velocity lag (not in the paper), compiled with numba.
+
+`cbf.RowBuilder` calls `second_order_b` for every row stack when the plant's velocity lags its
+command (``lag_tau > 0``); the derivation is in `cbf.RowBuilder._second_order`'s docstring.
+Row-wise dot products are summed in ``einsum``'s order and the matrix-vector products numpy
+does through BLAS come from the caller, so the rows equal a numpy formulation to the bit.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+
+OCCLUSION = 5
+"""`cbf.OCCLUSION`: occlusion rows stay first order."""
+
+
+@numba.njit(cache=True)
+def _dot3(a0, a1, a2, b0, b1, b2):  # pragma: no cover (compiled)
+    """a . b of 3-vectors summed as numpy's ``einsum`` sums them: (x0 + x2) + x1."""
+    return (a0 * b0 + a2 * b2) + a1 * b1
+
+
+@numba.njit(cache=True)
+def _rowdot(a, b):  # pragma: no cover (compiled)
+    """Row-wise dot products of two (m, 3) arrays (``einsum("ij,ij->i")``)."""
+    out = np.empty(a.shape[0])
+    for r in range(a.shape[0]):
+        out[r] = _dot3(a[r, 0], a[r, 1], a[r, 2], b[r, 0], b[r, 1], b[r, 2])
+    return out
+
+
+@numba.njit(cache=True)
+def second_order_b(
+    A,
+    h,
+    b,
+    margin,
+    kind,
+    index,
+    sizes,
+    v,
+    nb_v,
+    grad_v,
+    target_dv,
+    target_curvature,
+    has_rho,
+    rho,
+    has_sigma,
+    sigma,
+    tau,
+    gamma_s,
+    gamma_c,
+    gamma_obstacle,
+    gamma_z,
+    clearance,
+    clearance2,
+    standoff,
+    standoff2,
+    box_model,
+    r_s,
+    r_c,
+    alpha_v,
+    brake_decel,
+):  # pragma: no cover (compiled)
+    """Right-hand sides b of the rows ``A V <= b`` as second-order CBFs for ``v-dot = (u - v) /
+    tau`` (`cbf.RowBuilder._second_order`), with braking-distance rows where
+    ``brake_decel`` > 0. The caller passes what numpy computes through BLAS: ``grad_v`` =
+    (-A) @ v, and the car row's relative velocity and curvature; ``clearance2``,
+    ``standoff2``: the squares as Python computes them."""
+    n = h.shape[0]
+    ends = np.cumsum(sizes)
+    starts = ends - sizes
+    dv = np.empty((n, 3))
+    for r in range(n):
+        dv[r] = v
+    curv = np.zeros(n)
+    gamma1 = np.zeros(n)
+    share = np.ones(n)
+    for f, g1, sign in ((0, gamma_s, 2.0), (4, gamma_c, -2.0)):  # uav: H = 2I, connect: -2I
+        for r in range(starts[f], ends[f]):
+            dv[r] = v - nb_v[index[r]]
+            curv[r] = sign * _dot3(dv[r, 0], dv[r, 1], dv[r, 2], dv[r, 0], dv[r, 1], dv[r, 2])
+            gamma1[r] = g1
+    grad = -A
+    o0, o1 = starts[1], ends[1]
+    if o1 > o0:
+        if box_model:  # H = 2 diag(axes outside the slab) outside, -2 n n' inside the box
+            mask = (grad[o0:o1] != 0.0).astype(np.float64)
+            outer = np.dot(mask, v * v)
+            for r in range(o0, o1):
+                curv[r] = (2.0 if h[r] + clearance2 >= 0.0 else -2.0) * outer[r - o0]
+        else:
+            vv = np.dot(v, v)
+            for r in range(o0, o1):
+                curv[r] = 2.0 * vv
+        for r in range(o0, o1):
+            gamma1[r] = gamma_obstacle
+    if sizes[2]:
+        r = starts[2]
+        dv[r] = target_dv
+        curv[r] = target_curvature
+        gamma1[r] = gamma_obstacle
+    for r in range(starts[3], ends[3]):
+        gamma1[r] = gamma_z  # H = 0
+    hdot = _rowdot(grad, dv)
+    need = tau * curv + (tau * gamma1 + 1.0) * hdot + gamma1 * h
+    second = -grad_v
+    speed = math.sqrt(np.dot(v, v))
+    for f, g1, collision in ((0, gamma_s, True), (4, gamma_c, False)):
+        lo, hi = starts[f], ends[f]
+        if has_rho and hi > lo:
+            # Neighbours known within a ball, d = d_hat + e, ||e|| <= rho, v_j = v_hat + f,
+            # ||f|| <= sigma (their h is already the ball's worst case): each term is bounded
+            # over the balls, -grad h . v by 2 rho ||v||, the curvature +-2 ||dv||^2 by its
+            # value at ||dv|| -+ sigma, grad h . dv by 2 (rho ||dv|| + ||d|| sigma + rho sigma)
+            # and A u (||u|| <= alpha_v) by 2 rho alpha_v; the UAV takes its share.
+            rh = rho[index[lo:hi]]
+            sg = sigma[index[lo:hi]] if has_sigma else np.zeros(hi - lo)
+            dvn = np.sqrt(_rowdot(dv[lo:hi], dv[lo:hi]))
+            if collision:  # H = 2I: the curvature is at least 2 (||dv|| - sigma)_+^2
+                low = np.maximum(dvn - sg, 0.0)
+                curv_drop = 2.0 * (dvn * dvn - low * low)
+            else:  # H = -2I: at least -2 (||dv|| + sigma)^2
+                high = dvn + sg
+                curv_drop = 2.0 * (high * high - dvn * dvn)
+            dn = 0.5 * np.sqrt(_rowdot(A[lo:hi], A[lo:hi]))
+            hdot_drop = 2.0 * (rh * dvn + dn * sg + rh * sg)
+            own = 2.0 * rh * (speed + alpha_v)
+            second[lo:hi] -= own
+            need[lo:hi] -= tau * curv_drop + (tau * g1 + 1.0) * hdot_drop
+        for r in range(lo, hi):  # a pair that must brake: each UAV brakes for it on its own
+            share[r] = 1.0 if need[r] < 0.0 else 0.5
+    second += share * need
+    if brake_decel > 0.0:
+        second = np.minimum(
+            second,
+            _braking(
+                A,
+                h,
+                dv,
+                gamma1,
+                index,
+                sizes,
+                starts,
+                ends,
+                v,
+                has_rho,
+                rho,
+                has_sigma,
+                sigma,
+                tau,
+                brake_decel,
+                clearance,
+                clearance2,
+                standoff,
+                standoff2,
+                r_s,
+                r_c,
+            ),
+        )
+    out = b.copy()
+    for r in range(n):
+        if kind[r] < OCCLUSION:
+            out[r] = second[r] - margin[r]
+    return out
+
+
+@numba.njit(cache=True)
+def _braking(
+    A,
+    h,
+    dv,
+    gamma1,
+    index,
+    sizes,
+    starts,
+    ends,
+    v,
+    has_rho,
+    rho,
+    has_sigma,
+    sigma,
+    tau,
+    a,
+    clearance,
+    clearance2,
+    standoff,
+    standoff2,
+    r_s,
+    r_c,
+):  # pragma: no cover (compiled)
+    """Right-hand sides of braking-distance rows on the same A as the collision, car, floor and
+    connectivity rows (not in the paper): each keeps ``s - w^2 / (2 a) >= 0``.
+
+    s is the distance left before the row's limit (to the clearance of an obstacle or of the
+    car, the floor, R_s from a team-mate, or R_c), w > 0 the speed closing it along
+    m = A / ||A|| (relative to the car's estimated velocity for the car), a the deceleration
+    one UAV guarantees (``brake_decel``; a team-mate brakes as much, so a pair has 2a). With
+    v-dot = (u - v) / tau (exact under `ShieldOptions.accel_bound`) and the distance convex
+    along the motion, ``m . u <= m . v + tau a (gamma s_b / w - 1)`` keeps
+    ``s_b = s - w^2 / (2 a_pair)`` from decreasing faster than ``-gamma s_b``: at s_b = 0 it
+    asks for a deceleration of exactly a. Rows not closing (w <= 0) get +inf.
+    """
+    n = h.shape[0]
+    out = np.full(n, np.inf)
+    norm = np.sqrt(_rowdot(A, A))
+    gap = np.zeros(n)
+    decel = np.full(n, a)
+    for f in (0, 4):
+        for r in range(starts[f], ends[f]):
+            decel[r] = 2.0 * a  # a pair: the team-mate brakes as much
+    for r in range(starts[1], ends[1]):
+        gap[r] = math.sqrt(max(h[r] + standoff2, 0.0)) - standoff
+    for r in range(starts[2], ends[2]):
+        gap[r] = math.sqrt(max(h[r] + clearance2, 0.0)) - clearance
+    for r in range(starts[3], ends[3]):
+        gap[r] = h[r]
+    for r in range(starts[0], ends[0]):
+        gap[r] = 0.5 * norm[r] - r_s
+    for r in range(starts[4], ends[4]):
+        gap[r] = r_c - 0.5 * norm[r]
+    closing = _rowdot(A, dv) / np.maximum(norm, 1e-12)
+    for f in (0, 4):
+        if has_rho:
+            for r in range(starts[f], ends[f]):
+                gap[r] -= rho[index[r]]
+                if has_sigma:
+                    closing[r] += sigma[index[r]]
+    last = n - sizes[5]  # occlusion rows stay as they are
+    ta = tau * a
+    for r in range(n):
+        w = closing[r]
+        if r < last and w > 1e-9 and norm[r] > 1e-12:
+            s_b = gap[r] - w * w / (2.0 * decel[r])
+            m_v = _dot3(A[r, 0], A[r, 1], A[r, 2], v[0], v[1], v[2]) / norm[r]
+            out[r] = norm[r] * (m_v + ta * (gamma1[r] * s_b / w - 1.0))
+    return out
