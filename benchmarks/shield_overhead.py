@@ -24,6 +24,7 @@ Then the same for ``VectorCBFShield`` over ``vector_env(--vector)``: bare and sh
 agent-steps/s, and its own time per agent-step (its step minus the vector env's step inside).
 
 Run: python benchmarks/shield_overhead.py [--steps 2000] [--repeats 3] [--vector 16]
+[--dynamics lag] (lag: second-order rows, `lag_aware`)
 """
 
 from __future__ import annotations
@@ -43,6 +44,13 @@ from uavtrack_env import onboard, uavtrack_v0  # noqa: E402
 from uavtrack_env.wrappers import CBFShield, VectorCBFShield  # noqa: E402
 
 N_UAVS = 3
+WORLD: dict = {
+    "scenario": "random",
+    "n_uavs": N_UAVS,
+    "max_cycles": 500,
+    "terminate_on_collision": "agent",
+}
+"""The worlds of every run (``--dynamics`` sets their motion model)."""
 _UKF_TIMES: list[float] = []
 
 
@@ -77,9 +85,7 @@ def run(shield: bool, amplitude: float, steps: int, seed: int) -> dict[str, np.n
     _UKF_TIMES.clear()
     times["ukf"] = _UKF_TIMES
     while done < steps:
-        raw = uavtrack_v0.parallel_env(
-            scenario="random", n_uavs=N_UAVS, max_cycles=500, terminate_on_collision="agent"
-        )
+        raw = uavtrack_v0.parallel_env(**WORLD)
         env = CBFShield(raw) if shield else raw
         env.reset(seed=seed + episode)
         if shield:  # instance-level wrappers: the class itself has no timing code
@@ -105,9 +111,7 @@ def run(shield: bool, amplitude: float, steps: int, seed: int) -> dict[str, np.n
 def run_vector(shield: bool, amplitude: float, steps: int, seed: int, k: int) -> dict:
     """Total and inner (the vector env's own step) times (s) and agent-steps of ``steps`` steps
     of ``vector_env(k)``, bare or under `VectorCBFShield`."""
-    venv = uavtrack_v0.vector_env(
-        k, scenario="random", n_uavs=N_UAVS, max_cycles=500, terminate_on_collision="agent"
-    )
+    venv = uavtrack_v0.vector_env(k, **WORLD)
     env = VectorCBFShield(venv) if shield else venv
     inner: list[float] = []
     venv.step = _timed(venv.step, inner)  # instance-level: the class has no timing code
@@ -148,7 +152,11 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--all-cores", action="store_true", help="do not pin to one core")
     ap.add_argument("--vector", type=int, default=16, help="worlds of the vector_env (0: skip)")
+    ap.add_argument(
+        "--dynamics", default="integrator", choices=("integrator", "lag"), help="UAV motion model"
+    )
     args = ap.parse_args()
+    WORLD["dynamics"] = {"model": args.dynamics}
     onboard.step_team = _timed(onboard.step_team, _UKF_TIMES)
     if not args.all_cores and hasattr(os, "sched_setaffinity"):
         os.sched_setaffinity(0, {min(os.sched_getaffinity(0))})
@@ -172,7 +180,10 @@ def main() -> None:
             own.append(own_time / shielded["agents"].sum())
         b, s = np.median(bare_t), np.median(shield_t)
         ba, sa = np.median(bare_a), np.median(shield_a)
-        print(f"== n={N_UAVS}, random world, {label} ({args.repeats} x {args.steps} steps)")
+        print(
+            f"== n={N_UAVS}, random world, {args.dynamics} dynamics, {label} "
+            f"({args.repeats} x {args.steps} steps)"
+        )
         print(f"  env steps/s   bare {1 / b:8.0f}   shielded {1 / s:8.0f}   ratio {b / s:.2f}")
         print(f"  agent-steps/s bare {1 / ba:8.0f}   shielded {1 / sa:8.0f}   ratio {ba / sa:.2f}")
         print(f"  shield active on {np.median(act):.0%} of agent-steps")
