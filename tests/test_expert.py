@@ -142,3 +142,24 @@ def test_default_occlusion_rows_keep_the_whole_car_visible_in_b0(tmp_path, rows,
     else:
         assert max(blocked.values()) == 0.0, blocked
         assert all(r["occlusion_ok"] for r in uavs.values())
+
+
+@pytest.mark.slow
+def test_table_vi_rows_in_parallel_equal_the_rows_one_by_one(tmp_path):
+    """``--all --workers 2`` (rows in spawned processes) writes the same metrics as
+    ``--workers 1``, row for row, timings aside."""
+    runs = {}
+    for workers in (1, 2):
+        out = tmp_path / f"w{workers}"
+        argv = ["--all", "--duration", "0.5", "--no-figures", "--no-progress"]
+        evaluate.main([*argv, "--out", str(out), "--workers", str(workers)])
+        runs[workers] = json.loads((out / "metrics.json").read_text())
+    assert [(m["scenario"], m["init"]) for m in runs[2]] == [(s, i) for s in "ABC" for i in (0, 1)]
+    for a, b in zip(runs[1], runs[2], strict=True):
+        assert a["uavs"] == b["uavs"]
+        assert a["initial_conditions"] == b["initial_conditions"]
+
+
+def test_workers_must_be_positive():
+    with pytest.raises(SystemExit):
+        evaluate.parse_args(["--all", "--workers", "0"])
