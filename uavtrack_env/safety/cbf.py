@@ -374,7 +374,7 @@ class RowBuilder:
             self._margins,
         )
         if self.lag_tau > 0.0:
-            b = self._second_order(ctx, A, h, b, margin, kind, index, tuple(sizes.tolist()))
+            b = self._second_order(ctx, A, h, b, margin, kind, index, sizes)
         return CBFRows(A, b, h, gamma, drift, margin, kind, index)
 
     def _second_order(
@@ -386,7 +386,7 @@ class RowBuilder:
         margin: np.ndarray,
         kind: np.ndarray,
         index: np.ndarray,
-        sizes: tuple[int, ...],
+        sizes: np.ndarray,
     ) -> np.ndarray:
         """Right-hand sides of the collision, floor and connectivity rows as second-order CBFs
         for a first-order velocity lag ``v-dot = (u - v) / tau`` (not in the paper).
@@ -420,7 +420,7 @@ class RowBuilder:
                 dv_t = dv_t - ctx.target_growth * g / max(float(np.linalg.norm(g)), 1e-12)
             curv_t = self._target_curvature(ctx.target_heading, grad[t], dv_t, h[t])
         return second_order_b(
-            A, h, b, margin, kind, index, np.array(sizes), v, _neighbour_velocities(ctx),
+            A, h, b, margin, kind, index, sizes, v, _neighbour_velocities(ctx),
             grad @ v, dv_t, curv_t, rho is not None,
             _ZEROS3 if rho is None else rho, sigma is not None, _ZEROS3 if sigma is None else sigma,
             self.lag_tau, cbf.gamma_s, cbf.gamma_c, cbf.gamma_obstacle, cbf.gamma_z,
