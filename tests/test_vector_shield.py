@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from uavtrack_env import uavtrack_v0
+from uavtrack_env.presets import expert_config
 from uavtrack_env.wrappers import CBFShield, VectorCBFShield
 from uavtrack_env.wrappers.sb3 import SharedPolicyVecEnv, VectorSharedPolicyVecEnv
 
@@ -161,3 +162,10 @@ def test_full_infos_certify_the_same():
         env.close()
     for a, b in zip(*runs, strict=True):
         np.testing.assert_array_equal(a, b)
+
+
+def test_config_is_the_expert_config():
+    env = VectorCBFShield(uavtrack_v0.vector_env(1), "paper")
+    assert env.config == expert_config("paper")
+    assert env.vector.config.n_uavs == 3
+    env.close()

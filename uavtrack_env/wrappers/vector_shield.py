@@ -22,7 +22,8 @@ from uavtrack_env.wrappers.shield import warn_if_lag_unaware
 class VectorCBFShield:
     """`UAVTrackVectorEnv` wrapper: the actions of all worlds pass their UAVs' CBF-QP (47) first.
 
-    ``config``: an `ExpertConfig` or a preset name (default ``"tuned"``), as for `CBFShield`.
+    ``config``: an `ExpertConfig` or a preset name (default ``"tuned"``), as for `CBFShield`;
+    ``self.config`` is that `ExpertConfig`, the worlds' `EnvConfig` is ``self.vector.config``.
     ``reset`` and ``step`` take and return what the vector env does (bad actions raise its own
     errors and change nothing); ``infos["action_clipped"]`` flags the policy's actions outside
     [-1, 1], and ``infos["shield"]`` holds arrays (K, n): ``active`` (the action was changed),
@@ -46,7 +47,7 @@ class VectorCBFShield:
         ]
         self.last_reports: list[dict[str, ShieldReport]] = [{} for _ in range(venv.num_envs)]
         for name in (
-            "num_envs", "possible_agents", "n_agents", "envs", "config", "metadata",
+            "num_envs", "possible_agents", "n_agents", "envs", "metadata",
             "single_observation_space", "single_action_space", "observation_space",
             "action_space",
         ):  # fmt: skip
