@@ -34,8 +34,11 @@ def _rss_mb() -> float:
 
 
 def _finite(tree) -> bool:
+    """Every float in a nest of dicts, tuples and arrays is finite."""
     if isinstance(tree, dict):
         return all(_finite(v) for v in tree.values())
+    if isinstance(tree, tuple):
+        return all(_finite(v) for v in tree)
     if isinstance(tree, float | np.floating):
         return math.isfinite(tree)
     if isinstance(tree, np.ndarray) and tree.dtype.kind == "f":
@@ -50,13 +53,13 @@ def soak_steps(steps: int, resets: int, seed: int) -> None:
     rss0, done, episodes, t0 = None, 0, 0, time.perf_counter()
     with tqdm(total=steps, unit="step") as bar:
         while done < steps:
-            obs, infos = env.reset(seed=seed + episodes)
+            if not _finite(env.reset(seed=seed + episodes)):
+                raise RuntimeError(f"a non-finite value at the reset of episode {episodes}")
             for _ in range(per_episode):
                 if not env.agents or done >= steps:
                     break
                 acts = {a: rng.uniform(-1, 1, 4).astype(np.float32) for a in env.agents}
-                obs, rewards, _te, _tr, infos = env.step(acts)
-                if not (_finite(obs) and _finite(rewards) and _finite(infos)):
+                if not _finite(env.step(acts)):
                     raise RuntimeError(f"a non-finite value at episode {episodes}, step {done}")
                 done += 1
                 bar.update()
@@ -82,9 +85,10 @@ def soak_vector(agent_steps: int, seed: int, worlds: int = 16) -> None:
     with tqdm(total=agent_steps, unit="agent-step") as bar:
         while done < agent_steps:
             a = rng.uniform(-1.2, 1.2, env.action_space.shape)
-            obs, rewards, _te, _tr, infos = env.step(a)
-            if not (_finite(obs) and _finite(rewards) and _finite(infos)):
+            out = env.step(a)
+            if not _finite(out):
                 raise RuntimeError(f"a non-finite value after {done} agent-steps")
+            infos = out[-1]
             rows = int(infos["active"].sum())
             done += rows
             resets += int(infos.get("_final_obs", np.zeros(1, bool)).sum())
@@ -93,6 +97,8 @@ def soak_vector(agent_steps: int, seed: int, worlds: int = 16) -> None:
                 rss0 = _rss_mb()
     env.close()
     wall = time.perf_counter() - t0
+    if rss0 is None:
+        raise SystemExit(f"no world reset in {done} agent-steps: pass more --vector-steps")
     print(
         f"vector_env({worlds}): {done} agent-steps, {resets} world resets in {wall:.0f} s "
         f"({done / wall:.0f} agent-steps/s); RSS after the first reset {rss0:.1f} MB, at the "

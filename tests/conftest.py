@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 
 from uavtrack_env import uavtrack_v0
@@ -22,6 +23,17 @@ METRICS_UAV_KEYS = frozenset(
     }
 )
 """Per-UAV keys that metrics.json must hold (issue 3's schema)."""
+
+
+def step_both(a, b, actions: np.ndarray) -> tuple[list[dict], list[dict]]:
+    """Step two SB3 VecEnvs with the same actions; assert equal observations, rewards and dones
+    and return both info lists."""
+    o1, r1, d1, i1 = a.step(actions)
+    o2, r2, d2, i2 = b.step(actions)
+    np.testing.assert_array_equal(o1, o2)
+    np.testing.assert_array_equal(r1, r2)
+    np.testing.assert_array_equal(d1, d2)
+    return i1, i2
 
 
 @pytest.fixture

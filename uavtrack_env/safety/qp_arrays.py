@@ -172,6 +172,7 @@ def triage(
         else:
             in_bounds &= abs(v[i]) <= v_max
     V = np.array((s * vx + c * vz, -c * vx + s * vz, -vy))  # cam_to_world_vec
+    # no rows, typed as camera_rows' (numba needs one type per returned value)
     An, bn, kinds, kept = camera_rows(A[:0], b[:0], kind[:0], yaw, alpha_v, prune)
     if in_bounds and w == wn and rows_hold(A, b, V, tol):
         return 0, v, w, An, bn, kinds, kept, lb, ub

@@ -143,7 +143,6 @@ def second_order_b(
                 dv,
                 gamma1,
                 index,
-                sizes,
                 starts,
                 ends,
                 v,
@@ -175,7 +174,6 @@ def _braking(
     dv,
     gamma1,
     index,
-    sizes,
     starts,
     ends,
     v,
@@ -229,7 +227,7 @@ def _braking(
                 gap[r] -= rho[index[r]]
                 if has_sigma:
                     closing[r] += sigma[index[r]]
-    last = n - sizes[5]  # occlusion rows stay as they are
+    last = starts[5]  # occlusion rows stay as they are
     ta = tau * a
     for r in range(n):
         w = closing[r]
