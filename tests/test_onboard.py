@@ -174,6 +174,30 @@ def test_a_silent_teammate_is_forgotten_after_the_timeout():
     assert table.belief().names == ("c",) and table.belief().position_radius[0] == 0.0
 
 
+@pytest.mark.parametrize("accel_bound", [None, 6.0])
+def test_take_is_update_then_belief(accel_bound):
+    """`NeighbourTable.take` (one compiled call) believes what `update` then `belief` do, over
+    a stream of dropped, delayed and returning messages."""
+    from uavtrack_env.onboard import NeighbourTable
+
+    names = ["a", "b", "c", "d"]
+    start = np.array([[0, 0, 1], [3, 0, 1], [0, 4, 1], [6, 6, 1]], float)
+    fused, split = (NeighbourTable(10.0, accel_bound, timeout=6) for _ in range(2))
+    for table in (fused, split):
+        table.reset(names, start, "a", r_c=20.0)
+    rng = np.random.default_rng(0)
+    pos = start.copy()
+    for _ in range(200):
+        pos += rng.uniform(-0.1, 0.1, pos.shape)
+        messages = {n: pos[k].copy() for k, n in enumerate(names[1:], 1) if rng.random() < 0.6}
+        got = fused.take(messages)
+        split.update(messages)
+        want = split.belief()
+        assert got.names == want.names and got.ids == want.ids
+        for field in ("positions", "velocities", "position_radius", "velocity_radius", "ages"):
+            np.testing.assert_array_equal(getattr(got, field), getattr(want, field))
+
+
 @pytest.mark.filterwarnings("ignore:the shield certifies")
 def test_the_trusted_context_builds_the_rows_of_a_checked_one():
     """The onboard stack builds its SafetyContext without re-checking the env's arrays; the

@@ -148,24 +148,47 @@ class NeighbourTable:
 
     def update(self, messages: dict[str, np.ndarray]) -> None:
         """Take this step's messages (team-mate -> position); the others age by one step."""
+        _take_messages(*self._messages(messages), *self._state(), self.timeout)
+
+    def take(self, messages: dict[str, np.ndarray]) -> NeighbourBelief:
+        """`update` with this step's messages, then the `belief` (one compiled call)."""
+        return self._wrap(
+            _take_and_believe(
+                *self._messages(messages), *self._state(), self.timeout, self._believe_accel()
+            )
+        )
+
+    def belief(self) -> NeighbourBelief:
+        """The known team-mates now."""
+        t = self
+        believed = _believe(
+            t._known, t._pos, t._vel, t._vel_err, t._age, t.dt, t.speed_bound, t._believe_accel()
+        )
+        return self._wrap(believed)
+
+    def _messages(self, messages: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+        """(team-mate indices, positions) of the messages from known team members."""
         ks, heard = [], []
         for name, pos in messages.items():
             k = self._index.get(name)
             if k is not None:
                 ks.append(k)
                 heard.append(pos)
-        pos = np.array(heard, float) if heard else _NO_POSITIONS
-        _take_messages(
-            np.array(ks, np.int64), pos, self._pos, self._vel, self._vel_err, self._age,
-            self._known, self.dt, self.accel_bound or 0.0, self.speed_bound, self.timeout,
+        return np.array(ks, np.int64), np.array(heard, float) if heard else _NO_POSITIONS
+
+    def _state(self) -> tuple:
+        """The table's arrays and bounds in `_take_messages`'s order (before ``timeout``)."""
+        return (
+            self._pos, self._vel, self._vel_err, self._age, self._known, self.dt,
+            self.accel_bound or 0.0, self.speed_bound,
         )  # fmt: skip
 
-    def belief(self) -> NeighbourBelief:
-        """The known team-mates now."""
-        k, pos, vel, radius, vel_radius = _believe(
-            self._known, self._pos, self._vel, self._vel_err, self._age, self.dt,
-            self.speed_bound, -1.0 if self.accel_bound is None else self.accel_bound,
-        )  # fmt: skip
+    def _believe_accel(self) -> float:
+        return -1.0 if self.accel_bound is None else self.accel_bound
+
+    def _wrap(self, believed: tuple) -> NeighbourBelief:
+        """A `NeighbourBelief` from `_believe`'s arrays."""
+        k, pos, vel, radius, vel_radius = believed
         if len(k) == len(self._names):
             names, ids = self._all
         else:
@@ -323,8 +346,7 @@ class OnboardAgent:
             if m["detected"]:
                 uncut[axis] = 0 if m[key] else min(uncut[axis] + 1, full)
             steps[axis] = steps[axis] + 1 if uncut[axis] < full else 0
-        self.neighbours.update(info["neighbours"])
-        self.belief = self.neighbours.belief()
+        self.belief = self.neighbours.take(info["neighbours"])
         self.info, self._rows = info, None
         self._context = self._make_context(info, self.belief)
 
@@ -387,6 +409,15 @@ class OnboardAgent:
             neighbour_ids=belief.ids,
             **target,
         )
+
+
+@numba.njit(cache=True)
+def _take_and_believe(
+    ks, pos, p, v, v_err, age, known, dt, accel, speed, timeout, believe_accel
+):  # pragma: no cover (compiled)
+    """`_take_messages`, then `_believe`: one step of `NeighbourTable.take`."""
+    _take_messages(ks, pos, p, v, v_err, age, known, dt, accel, speed, timeout)
+    return _believe(known, p, v, v_err, age, dt, speed, believe_accel)
 
 
 def observe_team(agents: Sequence[OnboardAgent], infos: Sequence[dict]) -> None:

@@ -111,6 +111,23 @@ def meets(x, G, h, lb, ub, tol):  # pragma: no cover (compiled)
 
 
 @numba.njit(cache=True)
+def family_lows(kind, h, n_kinds, hard_below):  # pragma: no cover (compiled)
+    """The least h of each row family (``kind`` in [0, n_kinds)): (lows, present, least h of
+    the families below ``hard_below``, inf without such rows)."""
+    lows = np.full(n_kinds, np.inf)
+    present = np.zeros(n_kinds, np.bool_)
+    hard = np.inf
+    for j in range(h.shape[0]):
+        k = kind[j]
+        if not present[k] or h[j] < lows[k]:
+            lows[k] = h[j]
+            present[k] = True
+        if k < hard_below and h[j] < hard:
+            hard = h[j]
+    return lows, present, hard
+
+
+@numba.njit(cache=True)
 def row_violations(An, bn, v, soft, active_tol):  # pragma: no cover (compiled)
     """The rows at the velocity v: (active rows, violated soft rows, violated hard rows, their
     violations (m/s, per row), total soft violation, total hard violation)."""

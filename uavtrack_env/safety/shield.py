@@ -69,6 +69,7 @@ from uavtrack_env.safety.config import CBFConfig
 from uavtrack_env.safety.qp_arrays import (
     INF,
     daqp_bounds,
+    family_lows,
     meets,
     qp_arrays,
     row_violations,
@@ -192,12 +193,9 @@ class ShieldReport:
         """(`min_h_by_family`, `min_hard_h`) in one pass over the rows."""
         if self.rows is None or not len(self.rows.h):
             return {}, math.inf
-        low: dict[int, float] = {}
-        for kind, h in zip(self.rows.kind.tolist(), self.rows.h.tolist(), strict=True):
-            if kind not in low or h < low[kind]:
-                low[kind] = h
-        hard = min([h for kind, h in low.items() if kind < CONNECT], default=math.inf)
-        return {KIND_NAMES[kind]: low[kind] for kind in sorted(low)}, hard
+        lows, present, hard = family_lows(self.rows.kind, self.rows.h, _N_KINDS, CONNECT)
+        lows, present = lows.tolist(), present.tolist()
+        return {name: lows[k] for k, name in enumerate(KIND_NAMES) if present[k]}, hard
 
     @property
     def h(self) -> dict[str, float]:
@@ -474,6 +472,7 @@ class SafetyFilter:
 
 
 _ZEROS3 = np.zeros(3)
+_N_KINDS = len(KIND_NAMES)
 
 
 def _norm(x: np.ndarray) -> float:
