@@ -19,9 +19,12 @@ Layers, each tried only if the previous one cannot give an answer:
 1. fast path: the nominal action satisfies every row and bound -> returned unchanged ("nominal");
    if only a bound is violated, its closed-form projection is returned when it is feasible.
 2. hard QP: every row hard ("optimal").
-3. relaxed QP: collision/altitude rows hard, connectivity/occlusion rows with slack under an
-   L1 penalty ("relaxed"). Because it only runs after step 2 was infeasible, the slack is exactly
-   zero whenever a hard solution exists (no dependence on the penalty weight).
+3. relaxed QPs ("relaxed"): first every row hard but the occlusion rows, which take slack under
+   an L1 penalty; if that is infeasible too, the connectivity rows take slack as well, weighted
+   100 times the occlusion rows. Connectivity is therefore given up only where it conflicts with
+   the collision and altitude rows, never for occlusion. Each runs only after the layer before it
+   was infeasible, so a family's slack is zero whenever a solution without it exists (up to
+   the exactness of the L1 penalty, `soft_penalty` far above the rows' multipliers).
 4. fallbacks by priority: the rows whose geometry is known are never traded for rows built on
    an estimate. The car's row (a UKF estimate) is slacked first (weight `hard_penalty` / 100),
    then the other UAVs' rows (`hard_penalty`) with the floor and obstacle rows still hard, then
@@ -59,6 +62,7 @@ from uavtrack_env.config import DT, ControlLimits
 from uavtrack_env.safety.cbf import (
     CONNECT,
     KIND_NAMES,
+    OCCLUSION,
     TARGET,
     UAV,
     CBFRows,
@@ -358,15 +362,21 @@ class SafetyFilter:
         """(status, slack weight per row; 0 = hard) of each QP layer, in the order tried.
 
         Priorities: the floor and the static obstacles (exact geometry) > the other UAVs
-        (messages, with their reachable sets) > the car (an estimate) > connectivity and
-        occlusion (soft). A layer gives up the lowest-priority hard family that is left.
+        (messages, with their reachable sets) > the car (an estimate) > connectivity > occlusion.
+        The first relaxation slacks the occlusion rows only; connectivity is slacked only when
+        it conflicts with the collision and altitude rows, and from then on outweighs
+        occlusion 100:1. A fallback gives up the lowest-priority hard family that is left.
         """
         opt = self.options
-        soft = kinds >= CONNECT
+        occlusion, connect = kinds == OCCLUSION, kinds == CONNECT
         yield "optimal", np.zeros(len(kinds))
-        if soft.any():
-            yield "relaxed", np.where(soft, opt.soft_penalty, 0.0)
-        base = np.where(soft, opt.soft_penalty, 0.0)
+        if occlusion.any():
+            yield "relaxed", np.where(occlusion, opt.soft_penalty, 0.0)
+        base = np.where(
+            connect, opt.soft_penalty, np.where(occlusion, 1e-2 * opt.soft_penalty, 0.0)
+        )
+        if connect.any():
+            yield "relaxed", base
         target = kinds == TARGET
         if target.any():
             base = np.where(target, opt.hard_penalty * 1e-2, base)
