@@ -348,3 +348,45 @@ def test_inside_the_car_box_the_way_out_is_never_its_bottom(below):
     assert h == pytest.approx(-(top**2) - cbf.obstacle_clearance**2)
     # -grad h . V <= b: the row asks for an upward velocity
     assert az < 0 and ax == 0 and ay == 0
+
+
+def _cone(p, q, half, clearance, vq=None, growth=1.0, heading=0.3):
+    vq = np.zeros(3) if vq is None else vq
+    ax, ay, az, h, drift = target_row(p, q, vq, half, heading, clearance, growth)
+    return np.array([-ax, -ay, -az]), h, drift  # grad h, h, drift
+
+
+@pytest.mark.parametrize(
+    "p",
+    [[4.0, 0.3, 0.9], [4.0, 3.5, 1.2], [-1.0, -4.0, 2.0], [0.5, 0.2, 3.5], [3.1, 2.4, 2.6]],
+)
+def test_the_undetected_cars_cone_row_matches_finite_differences(p):
+    """The cone barrier of a growing car box (`target_row` with growth > 0): grad h by central
+    differences in p; the drift is -grad h . V_q plus the rate at which h falls as the footprint
+    grows (d h / d half_xy by differences, times the growth)."""
+    p, q = np.array(p), np.array([0.2, -0.1, 0.75])
+    half, c, g, vq = np.array([2.0, 1.5, 1.1]), 1.2, 1.7, np.array([0.6, -0.4, 0.0])
+    grad, _, drift = _cone(p, q, half, c, vq, g)
+    eps = 1e-6
+    num = [(_cone(p + e, q, half, c)[1] - _cone(p - e, q, half, c)[1]) / (2 * eps)
+           for e in np.eye(3) * eps]  # fmt: skip
+    np.testing.assert_allclose(grad, num, atol=1e-6)
+    grow = np.array([1.0, 1.0, 0.0]) * eps  # the footprint grows, the height stays exact
+    dh_grow = (_cone(p, q, half + grow, c)[1] - _cone(p, q, half - grow, c)[1]) / (2 * eps)
+    assert drift == pytest.approx(-grad @ vq + g * dh_grow, abs=1e-6)
+
+
+def test_the_cones_safe_set_keeps_the_clearance_and_climbing_keeps_it():
+    """Every sampled point with h >= 0 is at least ``clearance`` from the box; over the footprint
+    the growth does not enter the row, and the row there asks only not to descend."""
+    rng = np.random.default_rng(0)
+    q, half, c = np.array([0.0, 0.0, 0.75]), np.array([2.5, 2.5, 1.25]), 1.0
+    points = rng.uniform([-8, -8, 0], [8, 8, 6], (20000, 3))
+    for p in points:
+        _, h, _ = _cone(p, q, half, c, heading=0.0)
+        if h >= 0.0:
+            outside = np.maximum(np.abs(p - q) - half, 0.0)
+            assert np.linalg.norm(outside) >= c - 1e-9
+    grad, h, drift = _cone(np.array([1.0, -1.0, 4.0]), q, half, c, growth=5.0)
+    np.testing.assert_array_equal(grad, [0.0, 0.0, 1.0])
+    assert drift == 0.0 and h > 0.0

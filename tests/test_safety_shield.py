@@ -374,3 +374,19 @@ def test_least_barrier_per_family_is_the_minimum_over_its_rows():
         got = ShieldReport("optimal", False, 0.0, 0.0, [], rows=rows).min_h_by_family
         want = {KIND_NAMES[k]: float(h[kind == k].min()) for k in sorted(set(kind.tolist()))}
         assert got == want and list(got) == list(want)
+
+
+def test_connectivity_is_kept_where_it_conflicts_only_with_occlusion():
+    """A connectivity row (v_x <= 0) and an occlusion row (v_x >= 1) cannot both hold: the shield
+    relaxes the occlusion row and keeps the link, whatever the nominal pulls towards."""
+    from uavtrack_env.safety.cbf import CONNECT, OCCLUSION
+
+    qp = SafetyFilter()
+    An = np.array([[1.0, 0.0, 0.0], [-1.0, 0.0, 0.0]])
+    bn = np.array([0.0, -1.0])
+    kinds = np.array([CONNECT, OCCLUSION])
+    box = np.full(3, qp.v_max)
+    v, status, _, _ = qp._solve_layers(np.array([2.0, 0.5, 0.0]), An, bn, kinds, -box, box)
+    assert status == "relaxed"
+    assert v[0] <= 1e-6  # the link holds; the occlusion row took the slack
+    np.testing.assert_allclose(v[1:], [0.5, 0.0], atol=1e-6)
