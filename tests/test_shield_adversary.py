@@ -173,22 +173,3 @@ def test_a_pinned_uav_does_not_let_its_team_mate_in():
     run = sa.run_one(world, "seek-obstacle", True, opts, expert_config("tuned"))
     assert run["statuses"].get("fallback", 0) > 0  # the pinned case does occur
     assert run["counts"]["collision"] == 0 and run["least"]["uav"] >= 0.0, run
-
-
-@pytest.mark.slow
-@pytest.mark.parametrize(
-    ("world", "family"),
-    [
-        (sa.WorldSpec(12, 3, "integrator", 0.0, 777012), "flee"),
-        (sa.WorldSpec(1, 3, "integrator", 0.5, 777001), "spin-dive"),
-        (sa.WorldSpec(26, 3, "lag", 0.0, 777026), "seek-obstacle"),
-    ],
-)
-def test_an_unseen_car_does_not_split_the_team(world, family):
-    """Worlds where the car stays unseen for seconds: its exclusion volume grows, and a UAV beside
-    it escapes by climbing over it (the cone barrier) instead of sideways, away from its
-    team-mates, over 400 steps (5 s)."""
-    opts = sa.HarnessOptions(steps=400, seed=777000, progress=False)
-    run = sa.run_one(world, family, True, opts, expert_config("tuned"))
-    assert run["counts"]["collision"] == 0 and run["counts"]["disconnection"] == 0, run
-    assert run["least"]["link"] >= 0.0

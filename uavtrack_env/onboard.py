@@ -450,11 +450,10 @@ def car_box(
     cut by the image border (`ShieldMargins.truncated_box_pad`; 0: none). That bias is at most
     the part of the car outside the image: the box grows by up to the footprint's half diagonal
     horizontally (u) and the car's half height vertically (v), at ``car_speed`` (a bias enters
-    the UKF over several updates, not at once). A growing box gets the cone barrier of
-    `safety.barrier_rows.target_row`, which the UAV can always keep by climbing over the car. A
-    car on the ground (`ShieldMargins.car_on_ground`) has an exact vertical extent: the box,
-    centred at the estimate, reaches from the ground (or below) to the car's height plus
-    ``target_margin``, whatever the estimated height.
+    the UKF over several updates, not at once; the growth enters the row as the box's faces
+    closing in). A car on the ground (`ShieldMargins.car_on_ground`) has an exact vertical
+    extent: the box, centred at the estimate, reaches from the ground (or below) to the car's
+    height plus ``target_margin``, whatever the estimated height.
     """
     diag, c = _CAR_DIAG, _CAR_HALF_HEIGHT
     sigma_p = math.sqrt(max(*est.covariance.diagonal()[4:7].tolist(), 0.0))

@@ -59,47 +59,25 @@ def box_sdists(local, half, grounded):  # pragma: no cover (compiled)
     return out
 
 
-CONE_SLOPE = 1.0
-"""Height (m) the car's cone barrier asks for per metre of horizontal distance (`target_row`)."""
-_SQRT2 = math.sqrt(2.0)
-
-
 @numba.njit(cache=True)
 def target_row(p, q, vq, half, heading, clearance, growth):  # pragma: no cover (compiled)
     """The car as a box at q with yaw ``heading``, moving at V_q: (-grad h, h, drift).
 
-    A known car (``growth`` = 0): h = sdist(p, box)^2 - clearance^2 (`box_sdist`, grounded: from
-    inside, the way out is a side or the top). h-dot = grad h . (V - V_q) for a translating box
-    (its heading rate is neglected), so ``drift = -grad h . V_q``.
-
-    A box that grows by ``growth`` m/s on its four sides (an undetected car, `onboard.car_box`;
-    its height is exact, the car stands on the ground) gets the cone barrier
-    ``h = CONE_SLOPE d_xy + (z - z_top) - sqrt(2) clearance``: d_xy the horizontal distance to the
-    box's footprint (0 above it), z_top its top. Its zero set keeps at least ``clearance`` from
-    the box (for a slope <= 1), and it can always be kept by climbing: over the footprint h is
-    the height above the top and the growth does not enter it. h is convex in p and in the
-    footprint's growth, so the rows' linearisation is conservative in discrete time. The sides
-    close in at ``growth``: ``drift = -grad h . V_q - CONE_SLOPE growth (|n_x| + |n_y|)``, n the
-    footprint's unit normal in the car's frame (exact at its corners). A box barrier there
-    would only push the UAV sideways, away from its team-mates, as long as the car is unseen.
+    h = sdist(p, box)^2 - clearance^2 (`box_sdist`, grounded: from inside, the way out is a side
+    or the top). h-dot = grad h . (V - V_q) for a translating box (its heading rate is
+    neglected), so ``drift = -grad h . V_q``; a box that also grows by ``growth`` m/s on every
+    side (an undetected car, `onboard.car_box`) closes in at that speed: ``drift -= ||grad h||
+    growth``.
     """
     c, s = math.cos(heading), math.sin(heading)
     dx, dy, dz = p[0] - q[0], p[1] - q[1], p[2] - q[2]
-    lx, ly = c * dx + s * dy, -s * dx + c * dy
-    if growth > 0.0:
-        ox, oy = max(abs(lx) - half[0], 0.0), max(abs(ly) - half[1], 0.0)
-        dxy = math.sqrt(ox * ox + oy * oy)
-        nx = ny = 0.0
-        if dxy > 0.0:
-            nx, ny = math.copysign(ox / dxy, lx), math.copysign(oy / dxy, ly)
-        gx, gy, gz = CONE_SLOPE * (c * nx - s * ny), CONE_SLOPE * (s * nx + c * ny), 1.0
-        h = CONE_SLOPE * dxy + dz - half[2] - _SQRT2 * clearance
-        drift = -(gx * vq[0] + gy * vq[1] + gz * vq[2])
-        drift -= CONE_SLOPE * growth * (abs(nx) + abs(ny))
-        return -gx, -gy, -gz, h, drift
-    d2, gx_l, gy_l, gz = box_sdist(lx, ly, dz, half[0], half[1], half[2], True)
+    d2, gx_l, gy_l, gz = box_sdist(
+        c * dx + s * dy, -s * dx + c * dy, dz, half[0], half[1], half[2], True
+    )
     gx, gy = c * gx_l - s * gy_l, s * gx_l + c * gy_l
     drift = -(gx * vq[0] + gy * vq[1] + gz * vq[2])
+    if growth > 0.0:
+        drift -= math.sqrt(gx * gx + gy * gy + gz * gz) * growth
     return -gx, -gy, -gz, d2 - clearance * clearance, drift
 
 

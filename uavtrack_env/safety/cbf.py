@@ -99,8 +99,7 @@ class SafetyContext:
     target_heading: float | None = None
     """Car yaw (rad); None: from the velocity estimate (0 when it is below 0.1 m/s)."""
     target_growth: float = 0.0
-    """Speed (m/s) at which the car's box grows on its four sides (an undetected car); > 0
-    gives the car the cone barrier of `barrier_rows.target_row`."""
+    """Speed (m/s) at which the car's box grows on every side (an undetected car)."""
     neighbour_ids: tuple[int, ...] | None = None
     """Optional agent ids of `neighbours`, used only to name rows ("uav:<id>")."""
     velocity: np.ndarray | None = None
@@ -416,18 +415,13 @@ class RowBuilder:
         if sizes[2]:  # the car's row: its velocity relative to the car and its curvature
             t = sizes[0] + sizes[1]
             dv_t = v - ctx.target_velocity
-            if ctx.target_growth > 0.0:
-                # the cone barrier: its sides close in at `target_row`'s rate, like a faster car;
-                # its Hessian is >= 0 (h convex), so no curvature is the conservative bound
+            if ctx.target_growth > 0.0:  # the box's faces close in: like a faster car
                 g = grad[t]
-                c, s_ = math.cos(ctx.target_heading), math.sin(ctx.target_heading)
-                rate = ctx.target_growth * (abs(c * g[0] + s_ * g[1]) + abs(-s_ * g[0] + c * g[1]))
-                dv_t = dv_t - rate * g / float(g @ g)
-            else:
-                curv_t = self._target_curvature(ctx.target_heading, grad[t], dv_t, h[t])
+                dv_t = dv_t - ctx.target_growth * g / max(float(np.linalg.norm(g)), 1e-12)
+            curv_t = self._target_curvature(ctx.target_heading, grad[t], dv_t, h[t])
         return second_order_b(
             A, h, b, margin, kind, index, sizes, v, _neighbour_velocities(ctx),
-            grad @ v, dv_t, curv_t, bool(sizes[2]) and ctx.target_growth > 0.0, rho is not None,
+            grad @ v, dv_t, curv_t, rho is not None,
             _ZEROS3 if rho is None else rho, sigma is not None, _ZEROS3 if sigma is None else sigma,
             self.lag_tau, cbf.gamma_s, cbf.gamma_c, cbf.gamma_obstacle, cbf.gamma_z,
             cbf.obstacle_clearance, cbf.obstacle_clearance**2, standoff, standoff**2,

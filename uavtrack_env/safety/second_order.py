@@ -46,7 +46,6 @@ def second_order_b(
     grad_v,
     target_dv,
     target_curvature,
-    target_cone,
     has_rho,
     rho,
     has_sigma,
@@ -69,8 +68,7 @@ def second_order_b(
     """Right-hand sides b of the rows ``A V <= b`` as second-order CBFs for ``v-dot = (u - v) /
     tau`` (`cbf.RowBuilder._second_order`), with braking-distance rows where
     ``brake_decel`` > 0. The caller passes what numpy computes through BLAS: ``grad_v`` =
-    (-A) @ v, and the car row's relative velocity and curvature (``target_cone``: the car's row is
-    the cone barrier of `barrier_rows.target_row`); ``clearance2``,
+    (-A) @ v, and the car row's relative velocity and curvature; ``clearance2``,
     ``standoff2``: the squares as Python computes them."""
     n = h.shape[0]
     ends = np.cumsum(sizes)
@@ -148,7 +146,6 @@ def second_order_b(
                 starts,
                 ends,
                 v,
-                target_cone,
                 has_rho,
                 rho,
                 has_sigma,
@@ -180,7 +177,6 @@ def _braking(
     starts,
     ends,
     v,
-    target_cone,
     has_rho,
     rho,
     has_sigma,
@@ -198,11 +194,11 @@ def _braking(
     connectivity rows (not in the paper): each keeps ``s - w^2 / (2 a) >= 0``.
 
     s is the distance left before the row's limit (to the clearance of an obstacle or of the
-    car, h / ||grad h|| for the car's cone, the floor, R_s from a team-mate, or R_c), w > 0
-    the speed closing it along m = A / ||A|| (relative to the car's estimated velocity for the
-    car), a the deceleration one UAV guarantees (``brake_decel``; a team-mate brakes as much,
-    so a pair has 2a). With v-dot = (u - v) / tau (exact under `ShieldOptions.accel_bound`) and
-    the distance convex along the motion, ``m . u <= m . v + tau a (gamma s_b / w - 1)`` keeps
+    car, the floor, R_s from a team-mate, or R_c), w > 0 the speed closing it along
+    m = A / ||A|| (relative to the car's estimated velocity for the car), a the deceleration
+    one UAV guarantees (``brake_decel``; a team-mate brakes as much, so a pair has 2a). With
+    v-dot = (u - v) / tau (exact under `ShieldOptions.accel_bound`) and the distance convex
+    along the motion, ``m . u <= m . v + tau a (gamma s_b / w - 1)`` keeps
     ``s_b = s - w^2 / (2 a_pair)`` from decreasing faster than ``-gamma s_b``: at s_b = 0 it
     asks for a deceleration of exactly a. Rows not closing (w <= 0) get +inf.
     """
@@ -217,10 +213,7 @@ def _braking(
     for r in range(starts[1], ends[1]):
         gap[r] = math.sqrt(max(h[r] + standoff2, 0.0)) - standoff
     for r in range(starts[2], ends[2]):
-        if target_cone:  # a plane (or, at a corner, convex): its distance along A
-            gap[r] = h[r] / max(norm[r], 1e-12)
-        else:
-            gap[r] = math.sqrt(max(h[r] + clearance2, 0.0)) - clearance
+        gap[r] = math.sqrt(max(h[r] + clearance2, 0.0)) - clearance
     for r in range(starts[3], ends[3]):
         gap[r] = h[r]
     for r in range(starts[0], ends[0]):
