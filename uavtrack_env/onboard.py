@@ -160,11 +160,18 @@ class NeighbourTable:
 
     def belief(self) -> NeighbourBelief:
         """The known team-mates now."""
-        t = self
-        believed = _believe(
-            t._known, t._pos, t._vel, t._vel_err, t._age, t.dt, t.speed_bound, t._believe_accel()
+        return self._wrap(
+            _believe(
+                self._known,
+                self._pos,
+                self._vel,
+                self._vel_err,
+                self._age,
+                self.dt,
+                self.speed_bound,
+                self._believe_accel(),
+            )
         )
-        return self._wrap(believed)
 
     def _messages(self, messages: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
         """(team-mate indices, positions) of the messages from known team members."""
@@ -184,6 +191,7 @@ class NeighbourTable:
         )  # fmt: skip
 
     def _believe_accel(self) -> float:
+        """`_believe`'s acceleration bound (-1: none, the integrator model)."""
         return -1.0 if self.accel_bound is None else self.accel_bound
 
     def _wrap(self, believed: tuple) -> NeighbourBelief:
