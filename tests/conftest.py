@@ -25,6 +25,16 @@ METRICS_UAV_KEYS = frozenset(
 """Per-UAV keys that metrics.json must hold (issue 3's schema)."""
 
 
+def car_h(p, center, half, clearance, yaw=0.0) -> float:
+    """Reference for the car's frustum barrier (`barrier_rows.target_row`): horizontal distance
+    to the (yawed) footprint plus height over the top minus sqrt(2) clearance."""
+    c, s = np.cos(yaw), np.sin(yaw)
+    d = np.asarray(p, float) - center
+    local = np.array([c * d[0] + s * d[1], -s * d[0] + c * d[1]])
+    out = np.maximum(np.abs(local) - np.asarray(half)[:2], 0.0)
+    return float(np.linalg.norm(out) + d[2] - half[2] - np.sqrt(2.0) * clearance)
+
+
 def step_both(a, b, actions: np.ndarray) -> tuple[list[dict], list[dict]]:
     """Step two SB3 VecEnvs with the same actions; assert equal observations, rewards and dones
     and return both info lists."""

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 from scipy.optimize import minimize_scalar
 
+from tests.conftest import car_h
 from uavtrack_env.safety import SafetyContext, SafetyFilter, build_rows, check_eq28
 from uavtrack_env.safety.barrier_rows import target_row
 from uavtrack_env.safety.cbf import (
@@ -17,7 +18,6 @@ from uavtrack_env.safety.cbf import (
     OCCLUSION,
     TARGET,
     UAV,
-    h_box,
 )
 from uavtrack_env.safety.config import CBFConfig
 from uavtrack_env.safety.occlusion import occluder_points
@@ -121,15 +121,48 @@ def test_obstacle_and_moving_target_rows_match_finite_differences(seed):
         ctx.target_half_extents,
         ctx.target_heading,
     )
-    check_family(rows, TARGET, lambda j, V, t: box_h(p + t * V, q + t * vq, hq, cl, th), rng)
+    check_family(rows, TARGET, lambda j, V, t: car_h(p + t * V, q + t * vq, hq, cl, th), rng)
     assert rows.drift[rows.kind == TARGET][0] != 0.0  # the target's motion enters b
 
     rows = build_rows(ctx, cbf, obstacle_model="point")
     check_family(rows, OBSTACLE, lambda j, V, t: np.sum((p + t * V - c[j]) ** 2) - cbf.r_s**2, rng)
 
 
+@pytest.mark.parametrize("seed", range(6))
+def test_a_growing_car_box_row_matches_finite_differences(seed):
+    """A box whose faces move out at a speed per axis (an undetected car's reachable set):
+    drift = d/dt h of its frustum with the box growing, from beside, above, a corner and
+    over the footprint."""
+    rng = np.random.default_rng(900 + seed)
+    cbf = CBFConfig().resolve()
+    cl = cbf.obstacle_clearance
+    q, th = np.array([0.0, 0.0, 0.75]), rng.uniform(-np.pi, np.pi)
+    half, vq = rng.uniform(1.0, 4.0, 3), rng.uniform(-1, 1, 3)
+    growth = np.array([rng.uniform(0.2, 2.0), rng.uniform(0.2, 2.0), rng.choice([0.0, 0.5])])
+    c, s = np.cos(th), np.sin(th)
+    local = rng.uniform(-1.6, 1.6, 3) * half
+    p = q + np.array([c * local[0] - s * local[1], s * local[0] + c * local[1], local[2]])
+    ctx = SafetyContext(
+        position=p,
+        yaw=0.0,
+        target_position=q,
+        target_velocity=vq,
+        target_half_extents=half,
+        target_heading=th,
+        target_growth=growth,
+    )
+    rows = build_rows(ctx, cbf)
+    check_family(
+        rows,
+        TARGET,
+        lambda j, V, t: car_h(p + t * V, q + t * vq, half + t * growth, cl, th),
+        rng,
+    )
+
+
 def test_target_row_near_box_surface_and_rotated():
-    """A UAV beside the long side of a yawed car: h = (gap)^2 - c^2 in closed form."""
+    """A UAV beside the long side of a yawed car at half its height: h = gap - half height -
+    sqrt(2) c in closed form, its gradient half away from the car, half up."""
     cbf = CBFConfig().resolve()
     heading = 0.7
     left = np.array([-np.sin(heading), np.cos(heading), 0.0])  # car's +y axis in the world
@@ -138,8 +171,8 @@ def test_target_row_near_box_surface_and_rotated():
     ctx = SafetyContext(position=p, yaw=0.0, target_position=[0, 0, 0.75], target_heading=heading)
     rows = build_rows(ctx, cbf)
     r = np.flatnonzero(rows.kind == TARGET)[0]
-    assert rows.h[r] == pytest.approx(gap**2 - cbf.obstacle_clearance**2)
-    assert np.allclose(-rows.A[r], 2 * gap * left)  # gradient points away from the car
+    assert rows.h[r] == pytest.approx(gap - 0.75 - np.sqrt(2) * cbf.obstacle_clearance)
+    assert np.allclose(-rows.A[r], left + [0, 0, 1])  # away from the car and up
 
 
 @pytest.mark.parametrize("model", ["paper", "moving-target"])
@@ -336,15 +369,31 @@ def test_edges_occluder_sees_a_cube_whose_axis_point_misses():
 
 
 @pytest.mark.parametrize("below", [True, False])
-def test_inside_the_car_box_the_way_out_is_never_its_bottom(below):
-    """A UAV inside the car's box below its centre is sent up or sideways (the car stands on the
-    ground), and the row's h is the grounded box barrier."""
+def test_over_the_car_footprint_the_way_out_is_up(below):
+    """A UAV inside the car's box (below its centre or not) or anywhere over its footprint is
+    sent straight up: h is its height over the top minus sqrt(2) clearance."""
     cbf = CBFConfig().resolve()
     q, half = np.array([0.0, 0.0, 0.75]), np.array([3.0, 3.0, 1.0])
-    p = np.array([0.4, -0.2, 0.3 if below else 1.5])
-    ax, ay, az, h, _drift = target_row(p, q, np.zeros(3), half, 0.0, cbf.obstacle_clearance, 0.0)
-    assert h == pytest.approx(h_box(p, q, half, cbf.obstacle_clearance, grounded=True)[0])
-    top = q[2] + half[2] - p[2]
-    assert h == pytest.approx(-(top**2) - cbf.obstacle_clearance**2)
-    # -grad h . V <= b: the row asks for an upward velocity
-    assert az < 0 and ax == 0 and ay == 0
+    for z in (0.3 if below else 1.5, 4.0):
+        p = np.array([0.4, -0.2, z])
+        ax, ay, az, h, _drift = target_row(
+            p, q, np.zeros(3), half, 0.0, cbf.obstacle_clearance, np.zeros(3)
+        )
+        assert h == pytest.approx(z - 1.75 - np.sqrt(2) * cbf.obstacle_clearance)
+        # -grad h . V <= b: the row asks for an upward velocity only
+        assert az == -1.0 and ax == 0 and ay == 0
+
+
+def test_the_car_frustum_keeps_the_clearance_from_the_box():
+    """Every point the car's row allows (h >= 0) is at least the clearance from the box, and
+    points at the box's clearance straight above it are allowed only sqrt(2) clearance up."""
+    rng = np.random.default_rng(5)
+    cl = CBFConfig().resolve().obstacle_clearance
+    q, half, th = np.array([1.0, -2.0, 0.8]), np.array([2.5, 1.2, 0.8]), 0.4
+    pts = q + rng.uniform(-8, 8, (20000, 3)) * [1, 1, 0.5] + [0, 0, 2.0]
+    allowed = [p for p in pts if car_h(p, q, half, cl, th) >= 0.0]
+    assert len(allowed) > 1000
+    dist = [np.sqrt(max(box_h(p, q, half, 0.0, th), 0.0)) for p in allowed]
+    assert min(dist) >= cl - 1e-9
+    top = q + [0.0, 0.0, half[2]]
+    assert car_h(top + [0, 0, np.sqrt(2) * cl], q, half, cl, th) == pytest.approx(0.0)

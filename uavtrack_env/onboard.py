@@ -17,6 +17,7 @@ import dataclasses
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numba
 import numpy as np
@@ -309,9 +310,10 @@ class OnboardAgent:
         )
         self._r_c = env_config.comms.r_c
         fastest = max(0.5, env_config.random_world.target_speed[1])  # Fig. 11: 0.5 m/s
-        self._car_speed = (
-            2.0 * fastest if margins.target_speed_max is None else margins.target_speed_max
-        )
+        self._car_speed = fastest if margins.target_speed_max is None else margins.target_speed_max
+        self._anchor: Estimate | None = None
+        """The last estimate trusted as the car's box: the reachable set grows from it
+        (`car_box`)."""
         self._recovery = round(margins.truncation_recovery / DT)
         self._uncut = [self._recovery] * 2
         """Detections since the last box cut by the image border in u and in v."""
@@ -335,6 +337,7 @@ class OnboardAgent:
         self.obstacle_centers = np.asarray(layout.obstacle_centers, float).reshape(-1, 3)
         self.obstacle_half_extents = np.asarray(layout.obstacle_half_extents, float).reshape(-1, 3)
         self.tracker.reset()
+        self._anchor = None
         self._uncut = [self._recovery] * 2
         self._cut_steps = [0, 0]
         self.neighbours.reset(agents, layout.uav_positions, self.name, self._r_c)
@@ -395,13 +398,15 @@ class OnboardAgent:
                 if margins.truncated_box_pad
                 else (0.0, 0.0)
             )
-            half, growth = car_box(est, margins, self._car_speed, cut_time)
+            if est.steps_since_detection * DT <= margins.target_stale_after:
+                self._anchor = est
+            box = car_box(est, margins, self._car_speed, cut_time, self._anchor)
             target = {
-                "target_position": est.target_position,
-                "target_velocity": est.target_velocity,
-                "target_half_extents": half,
+                "target_position": box.center,
+                "target_velocity": box.velocity,
+                "target_half_extents": box.half,
                 "target_heading": 0.0,
-                "target_growth": growth,
+                "target_growth": box.growth,
             }
         # The env's own arrays, already float64 and finite: no re-validation.
         return SafetyContext.trusted(
@@ -440,45 +445,78 @@ _CAR_DIAG = math.hypot(*CAR_HALF_EXTENTS[:2].tolist())
 _CAR_HALF_HEIGHT = float(CAR_HALF_EXTENTS[2])
 
 
+class CarBox(NamedTuple):
+    """The car's exclusion box (`car_box`), heading-free (axis-aligned in the world)."""
+
+    center: np.ndarray
+    """(3,) its centre (m)."""
+    velocity: np.ndarray
+    """(3,) the velocity (m/s) at which the whole box moves."""
+    half: np.ndarray
+    """(3,) half extents (m)."""
+    growth: np.ndarray
+    """(3,) speeds (m/s) at which its faces move outwards along x, y, z."""
+
+
 def car_box(
     est: Estimate,
     margins: ShieldMargins,
     car_speed: float,
     cut_time: np.ndarray | tuple[float, float] = (0.0, 0.0),
-) -> tuple[np.ndarray, float]:
-    """The car's exclusion box from a UKF estimate: (half extents, growth in m/s).
+    anchor: Estimate | None = None,
+) -> CarBox:
+    """The car's exclusion box from a UKF estimate.
 
     The box is heading-free: the car (4.6 x 1.8 x 1.5 m, section VI-A) may point anywhere, so
     both horizontal half extents are its footprint's half diagonal (the UKF's velocity direction
     is too unreliable to orient it: ``python -m baselines.car_box``). It is inflated by
     ``target_margin`` plus ``target_sigmas`` position standard deviations (capped at
-    ``target_margin_max``), and, once the car has not been detected for ``target_stale_after``
-    s, by ``car_speed`` times the time since then (the car may have left the prediction at up to
-    that speed). ``cut_time`` (u, v): how long (s) the estimate has carried the bias of boxes
-    cut by the image border (`ShieldMargins.truncated_box_pad`; 0: none). That bias is at most
-    the part of the car outside the image: the box grows by up to the footprint's half diagonal
-    horizontally (u) and the car's half height vertically (v), at ``car_speed`` (a bias enters
-    the UKF over several updates, not at once; the growth enters the row as the box's faces
-    closing in). A car on the ground (`ShieldMargins.car_on_ground`) has an exact vertical
-    extent: the box, centred at the estimate, reaches from the ground (or below) to the car's
+    ``target_margin_max``). It is centred at the estimate and moves with the estimated velocity
+    while the car is detected and for ``target_stale_after`` s without a detection (the pad
+    covers the prediction's error). After that it is the car's reachable set from ``anchor``,
+    the estimate at that moment (the caller keeps it; None: ``est`` itself): the car drives at
+    most at ``car_speed``, so the box stands still and its faces move out at that speed,
+    whatever the UKF predicts (after a hostile manoeuvre its velocity estimate can be off by
+    more than the car's speed). The top rises too, although the car stays on the ground: a UAV
+    over a car it has lost climbs at the car's speed instead of holding a ceiling over it,
+    through which team-mates crowding above can press it when the rows of a dense team conflict
+    and the car's (the estimate) is the one given up (`SafetyFilter`; seek-car in
+    ``python -m baselines.shield_adversary``).
+
+    ``cut_time`` (u, v): how long (s) the estimate has carried the bias of boxes cut by the image
+    border (`ShieldMargins.truncated_box_pad`; 0: none). That bias is at most the part of the car
+    outside the image: the box grows by up to the footprint's half diagonal horizontally (u) and
+    the car's half height vertically (v), at twice ``car_speed`` (a bias enters the UKF over
+    several updates, not at once). A car on the ground (`ShieldMargins.car_on_ground`) has an
+    exact vertical extent while tracked: the box reaches from the ground (or below) to the car's
     height plus ``target_margin``, whatever the estimated height.
     """
     diag, c = _CAR_DIAG, _CAR_HALF_HEIGHT
-    sigma_p = math.sqrt(max(*est.covariance.diagonal()[4:7].tolist(), 0.0))
-    pad = min(margins.target_margin + margins.target_sigmas * sigma_p, margins.target_margin_max)
     stale = est.steps_since_detection * DT - margins.target_stale_after
-    growing = stale > 0.0
-    if growing:
-        pad += car_speed * stale
+    ref = est if stale <= 0.0 or anchor is None else anchor
+    sigma_p = math.sqrt(max(*ref.covariance.diagonal()[4:7].tolist(), 0.0))
+    pad = min(margins.target_margin + margins.target_sigmas * sigma_p, margins.target_margin_max)
     hxy, hz = diag + pad, c + pad
+    g_xy = g_z = 0.0
     t_u, t_v = cut_time
+    bias_speed = 2.0 * car_speed
     if t_u > 0.0:
-        hxy += min(car_speed * t_u, diag)
-        growing |= car_speed * t_u < diag
+        hxy += min(bias_speed * t_u, diag)
+        g_xy += bias_speed if bias_speed * t_u < diag else 0.0
     if t_v > 0.0:
-        hz += min(car_speed * t_v, c)
-        growing |= car_speed * t_v < c
+        hz += min(bias_speed * t_v, c)
+        g_z += bias_speed if bias_speed * t_v < c else 0.0
+    center = ref.target_position
     if margins.car_on_ground:  # the box spans [<= 0, the car's height + target_margin]
-        top, z = 2.0 * c + margins.target_margin, float(est.target_position[2])
-        hz = max(top - z, z)
-    return np.array((hxy, hxy, hz)), car_speed if growing else 0.0
+        top, z = 2.0 * c + margins.target_margin, float(center[2])
+        hz, g_z = max(top - z, z), 0.0
+    if stale > 0.0:  # the reachable set from the anchor, its top included
+        hxy += car_speed * stale
+        hz += car_speed * stale
+        g_xy += car_speed
+        g_z += car_speed
+    velocity = _ZEROS3 if stale > 0.0 else est.target_velocity
+    return CarBox(center, velocity, np.array((hxy, hxy, hz)), np.array((g_xy, g_xy, g_z)))
+
+
+_ZEROS3 = np.zeros(3)

@@ -49,6 +49,7 @@ DEFAULT_CAR_HALF_EXTENTS = (2.3, 0.9, 0.75)
 """Half size of the target car, 4.6 x 1.8 x 1.5 m (section VI-A)."""
 
 _EMPTY3 = np.zeros((0, 3))
+_ZEROS3 = np.zeros(3)
 
 
 def _vec3(name: str, value, default=None) -> np.ndarray:
@@ -98,8 +99,10 @@ class SafetyContext:
     """(3,) car half size; default (2.3, 0.9, 0.75) (section VI-A)."""
     target_heading: float | None = None
     """Car yaw (rad); None: from the velocity estimate (0 when it is below 0.1 m/s)."""
-    target_growth: float = 0.0
-    """Speed (m/s) at which the car's box grows on every side (an undetected car)."""
+    target_growth: np.ndarray = field(default_factory=lambda: _ZEROS3)
+    """(3,) speeds (m/s) at which the car box's faces move outwards along its axes (x, y in the
+    car's frame, z): an undetected car's reachable set (`onboard.car_box`); a scalar: every
+    axis alike."""
     neighbour_ids: tuple[int, ...] | None = None
     """Optional agent ids of `neighbours`, used only to name rows ("uav:<id>")."""
     velocity: np.ndarray | None = None
@@ -160,9 +163,12 @@ class SafetyContext:
             put(self, "target_heading", math.atan2(vq[1], vq[0]) if speed > 0.1 else 0.0)
         elif not math.isfinite(float(self.target_heading)):
             raise ValueError(f"target_heading must be finite, got {self.target_heading}")
-        growth = float(self.target_growth)
-        if not (math.isfinite(growth) and growth >= 0.0):
-            raise ValueError(f"target_growth must be a finite speed >= 0 (m/s), got {growth}")
+        growth = np.asarray(self.target_growth, dtype=float)
+        if growth.shape not in ((), (3,)):
+            raise ValueError(f"target_growth must be a speed or shape (3,), got {growth.shape}")
+        growth = np.broadcast_to(growth, (3,)).copy()
+        if not (np.isfinite(growth).all() and (growth >= 0.0).all()):
+            raise ValueError(f"target_growth must be finite speeds >= 0 (m/s), got {growth}")
         put(self, "target_growth", growth)
         if self.velocity is not None:
             put(self, "velocity", _vec3("velocity", self.velocity))
@@ -411,34 +417,35 @@ class RowBuilder:
         rho, sigma = ctx.neighbour_radius, ctx.neighbour_velocity_radius
         standoff = cbf.obstacle_clearance if self.obstacle_model == "box" else cbf.r_s
         grad = -A
-        dv_t, curv_t = _ZEROS3, 0.0
-        if sizes[2]:  # the car's row: its velocity relative to the car and its curvature
+        dv_t = _ZEROS3
+        if sizes[2]:  # the car's row: its velocity relative to the car's faces
             t = sizes[0] + sizes[1]
-            dv_t = v - ctx.target_velocity
-            if ctx.target_growth > 0.0:  # the box's faces close in: like a faster car
-                g = grad[t]
-                dv_t = dv_t - ctx.target_growth * g / max(float(np.linalg.norm(g)), 1e-12)
-            curv_t = self._target_curvature(ctx.target_heading, grad[t], dv_t, h[t])
+            dv_t = car_relative_velocity(
+                v, ctx.target_velocity, grad[t], ctx.target_heading, ctx.target_growth
+            )
         return second_order_b(
             A, h, b, margin, kind, index, sizes, v, _neighbour_velocities(ctx),
-            grad @ v, dv_t, curv_t, rho is not None,
+            grad @ v, dv_t, rho is not None,
             _ZEROS3 if rho is None else rho, sigma is not None, _ZEROS3 if sigma is None else sigma,
             self.lag_tau, cbf.gamma_s, cbf.gamma_c, cbf.gamma_obstacle, cbf.gamma_z,
-            cbf.obstacle_clearance, cbf.obstacle_clearance**2, standoff, standoff**2,
+            cbf.obstacle_clearance**2, standoff, standoff**2,
             self.obstacle_model == "box", cbf.r_s, cbf.r_c, cbf.alpha_v, self.brake_decel,
         )  # fmt: skip
 
-    def _target_curvature(
-        self, heading: float, grad: np.ndarray, dv: np.ndarray, h: float
-    ) -> float:
-        """dv' H dv of the target's box row, in the car's frame (its box is axis-aligned there);
-        dv the velocity relative to the car."""
-        c, s_ = math.cos(heading), math.sin(heading)
-        rot = np.array(((c, s_, 0.0), (-s_, c, 0.0), (0.0, 0.0, 1.0)))  # world -> car frame
-        g_l, dv_l = rot @ grad, rot @ dv
-        active = np.abs(g_l) > 1e-12 * max(float(np.abs(g_l).max()), 1e-300)
-        sign = 2.0 if h + self.cbf.obstacle_clearance**2 >= 0.0 else -2.0
-        return sign * float(active @ (dv_l * dv_l))
+
+def car_relative_velocity(
+    v: np.ndarray, vq: np.ndarray, grad: np.ndarray, heading: float, growth: np.ndarray
+) -> np.ndarray:
+    """The UAV's velocity relative to the car box's nearest face(s) (``grad``: grad h of its
+    row): v - V_q, less each face's outward speed ``growth`` (box frame) along the gradient's
+    signs, so that ``h-dot = grad h . dv`` and ``h-ddot = dv' H dv`` for a growing box."""
+    dv = v - vq
+    if not growth.any():
+        return dv
+    c, s = math.cos(heading), math.sin(heading)
+    g_l = np.array((c * grad[0] + s * grad[1], -s * grad[0] + c * grad[1], grad[2]))
+    wx, wy, wz = np.sign(g_l) * growth
+    return dv - np.array((c * wx - s * wy, s * wx + c * wy, wz))
 
 
 def _neighbour_velocities(ctx: SafetyContext) -> np.ndarray:
@@ -452,9 +459,6 @@ def _neighbour_velocities(ctx: SafetyContext) -> np.ndarray:
             )
         nb_v = np.zeros_like(ctx.neighbours)
     return nb_v
-
-
-_ZEROS3 = np.zeros(3)
 
 
 def build_rows(ctx: SafetyContext, cbf: CBFConfig, **kwargs) -> CBFRows:

@@ -32,11 +32,12 @@ class ShieldMargins:
     """Required gap (m) between the UAV sphere and an obstacle/the ground at the barrier's edge:
     ``obstacle_clearance - uav_radius`` and ``z_min - uav_radius`` must be at least this."""
     target_stale_after: float = 0.25
-    """After this long (s) without a detection the car's box also grows at target_speed_max."""
+    """For this long (s) without a detection the car's box follows the UKF's prediction (its
+    pad covers the error); after it, the box is the car's reachable set (`onboard.car_box`)."""
     target_speed_max: float | None = None
-    """Bound (m/s) on how fast an undetected car leaves its prediction, |V_q - V_q estimate|: the
-    box of an undetected car grows at this speed (`onboard.car_box`). None: twice the world's
-    fastest car (the paper's 0.5 m/s, ``random_world.target_speed``)."""
+    """Bound (m/s) on the car's speed: a stale car's box is its reachable set, growing at this
+    speed from the last trusted estimate (`onboard.car_box`). None: the world's fastest car
+    (the paper's 0.5 m/s, ``random_world.target_speed``)."""
     car_on_ground: bool = True
     """The car drives on the flat ground (section VI-A): its box spans the heights 0 to its
     height (plus ``target_margin``), whatever the UKF's height estimate; False: the estimated
@@ -44,7 +45,7 @@ class ShieldMargins:
     truncated_box_pad: bool = True
     """While the car's box is cut by the image border, its centre (u, v) is biased inwards and
     the UKF's position with it, by up to the part of the car outside the image: pad the car's
-    box, growing at ``target_speed_max``, by up to the car's footprint half diagonal
+    box, growing at twice ``target_speed_max``, by up to the car's footprint half diagonal
     horizontally (a cut in u) and its half height vertically (a cut in v, unless
     ``car_on_ground``) until ``truncation_recovery`` s of uncut detections have passed."""
     truncation_recovery: float = 0.5

@@ -45,7 +45,6 @@ def second_order_b(
     nb_v,
     grad_v,
     target_dv,
-    target_curvature,
     has_rho,
     rho,
     has_sigma,
@@ -55,7 +54,6 @@ def second_order_b(
     gamma_c,
     gamma_obstacle,
     gamma_z,
-    clearance,
     clearance2,
     standoff,
     standoff2,
@@ -68,7 +66,8 @@ def second_order_b(
     """Right-hand sides b of the rows ``A V <= b`` as second-order CBFs for ``v-dot = (u - v) /
     tau`` (`cbf.RowBuilder._second_order`), with braking-distance rows where
     ``brake_decel`` > 0. The caller passes what numpy computes through BLAS: ``grad_v`` =
-    (-A) @ v, and the car row's relative velocity and curvature; ``clearance2``,
+    (-A) @ v, and the car row's relative velocity (`cbf.car_relative_velocity`; the car's
+    frustum is convex, so its curvature is bounded by 0); ``clearance2``,
     ``standoff2``: the squares as Python computes them."""
     n = h.shape[0]
     ends = np.cumsum(sizes)
@@ -101,7 +100,6 @@ def second_order_b(
     if sizes[2]:
         r = starts[2]
         dv[r] = target_dv
-        curv[r] = target_curvature
         gamma1[r] = gamma_obstacle
     for r in range(starts[3], ends[3]):
         gamma1[r] = gamma_z  # H = 0
@@ -152,8 +150,6 @@ def second_order_b(
                 sigma,
                 tau,
                 brake_decel,
-                clearance,
-                clearance2,
                 standoff,
                 standoff2,
                 r_s,
@@ -183,8 +179,6 @@ def _braking(
     sigma,
     tau,
     a,
-    clearance,
-    clearance2,
     standoff,
     standoff2,
     r_s,
@@ -193,13 +187,14 @@ def _braking(
     """Right-hand sides of braking-distance rows on the same A as the collision, car, floor and
     connectivity rows (not in the paper): each keeps ``s - w^2 / (2 a) >= 0``.
 
-    s is the distance left before the row's limit (to the clearance of an obstacle or of the
-    car, the floor, R_s from a team-mate, or R_c), w > 0 the speed closing it along
-    m = A / ||A|| (relative to the car's estimated velocity for the car), a the deceleration
-    one UAV guarantees (``brake_decel``; a team-mate brakes as much, so a pair has 2a). With
-    v-dot = (u - v) / tau (exact under `ShieldOptions.accel_bound`) and the distance convex
-    along the motion, ``m . u <= m . v + tau a (gamma s_b / w - 1)`` keeps
-    ``s_b = s - w^2 / (2 a_pair)`` from decreasing faster than ``-gamma s_b``: at s_b = 0 it
+    s is the distance left before the row's limit (to the clearance of an obstacle, to the
+    car's frustum (h / ||grad h||: a plane, or convex at a corner), the floor, R_s from a
+    team-mate, or R_c), w > 0 the speed closing it along m = A / ||A|| (relative to the car's
+    faces for the car), a the deceleration one UAV guarantees (``brake_decel``; a team-mate
+    brakes as much, so a pair has 2a). With v-dot = (u - v) / tau (exact under
+    `ShieldOptions.accel_bound`) and the distance convex along the motion,
+    ``m . u <= m . v + tau a (gamma s_b / w - 1)`` keeps ``s_b = s - w^2 / (2 a_pair)`` from
+    decreasing faster than ``-gamma s_b``: at s_b = 0 it
     asks for a deceleration of exactly a. Rows not closing (w <= 0) get +inf.
     """
     n = h.shape[0]
@@ -212,8 +207,8 @@ def _braking(
             decel[r] = 2.0 * a  # a pair: the team-mate brakes as much
     for r in range(starts[1], ends[1]):
         gap[r] = math.sqrt(max(h[r] + standoff2, 0.0)) - standoff
-    for r in range(starts[2], ends[2]):
-        gap[r] = math.sqrt(max(h[r] + clearance2, 0.0)) - clearance
+    for r in range(starts[2], ends[2]):  # the car's frustum: a plane's distance along A
+        gap[r] = h[r] / max(norm[r], 1e-12)
     for r in range(starts[3], ends[3]):
         gap[r] = h[r]
     for r in range(starts[0], ends[0]):
