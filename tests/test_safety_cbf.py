@@ -18,6 +18,7 @@ from uavtrack_env.safety.cbf import (
     OCCLUSION,
     TARGET,
     UAV,
+    h_box,
 )
 from uavtrack_env.safety.config import CBFConfig
 from uavtrack_env.safety.occlusion import occluder_points
@@ -121,18 +122,19 @@ def test_obstacle_and_moving_target_rows_match_finite_differences(seed):
         ctx.target_half_extents,
         ctx.target_heading,
     )
-    check_family(rows, TARGET, lambda j, V, t: car_h(p + t * V, q + t * vq, hq, cl, th), rng)
+    check_family(rows, TARGET, lambda j, V, t: box_h(p + t * V, q + t * vq, hq, cl, th), rng)
     assert rows.drift[rows.kind == TARGET][0] != 0.0  # the target's motion enters b
 
     rows = build_rows(ctx, cbf, obstacle_model="point")
     check_family(rows, OBSTACLE, lambda j, V, t: np.sum((p + t * V - c[j]) ** 2) - cbf.r_s**2, rng)
 
 
+@pytest.mark.parametrize("frustum", [False, True])
 @pytest.mark.parametrize("seed", range(6))
-def test_a_growing_car_box_row_matches_finite_differences(seed):
-    """A box whose faces move out at a speed per axis (an undetected car's reachable set):
-    drift = d/dt h of its frustum with the box growing, from beside, above, a corner and
-    over the footprint."""
+def test_a_growing_car_box_row_matches_finite_differences(seed, frustum):
+    """A box whose faces move out at a speed per axis (a stale car's reachable set): drift =
+    d/dt h, of the box and of its frustum, with the box growing, from beside, above, a corner
+    and inside."""
     rng = np.random.default_rng(900 + seed)
     cbf = CBFConfig().resolve()
     cl = cbf.obstacle_clearance
@@ -142,6 +144,7 @@ def test_a_growing_car_box_row_matches_finite_differences(seed):
     c, s = np.cos(th), np.sin(th)
     local = rng.uniform(-1.6, 1.6, 3) * half
     p = q + np.array([c * local[0] - s * local[1], s * local[0] + c * local[1], local[2]])
+    p[2] = max(p[2], q[2] + 0.1)  # the grounded box's bottom is never the way out
     ctx = SafetyContext(
         position=p,
         yaw=0.0,
@@ -150,19 +153,22 @@ def test_a_growing_car_box_row_matches_finite_differences(seed):
         target_half_extents=half,
         target_heading=th,
         target_growth=growth,
+        target_frustum=frustum,
     )
     rows = build_rows(ctx, cbf)
+    ref = car_h if frustum else box_h
     check_family(
         rows,
         TARGET,
-        lambda j, V, t: car_h(p + t * V, q + t * vq, half + t * growth, cl, th),
+        lambda j, V, t: ref(p + t * V, q + t * vq, half + t * growth, cl, th),
         rng,
     )
 
 
 def test_target_row_near_box_surface_and_rotated():
-    """A UAV beside the long side of a yawed car at half its height: h = gap - half height -
-    sqrt(2) c in closed form, its gradient half away from the car, half up."""
+    """A UAV beside the long side of a yawed car at half its height, in closed form: the box's
+    h = gap^2 - c^2 with its gradient away from the car; the frustum's h = gap - half height -
+    sqrt(2) c with its gradient half away from the car, half up."""
     cbf = CBFConfig().resolve()
     heading = 0.7
     left = np.array([-np.sin(heading), np.cos(heading), 0.0])  # car's +y axis in the world
@@ -171,8 +177,11 @@ def test_target_row_near_box_surface_and_rotated():
     ctx = SafetyContext(position=p, yaw=0.0, target_position=[0, 0, 0.75], target_heading=heading)
     rows = build_rows(ctx, cbf)
     r = np.flatnonzero(rows.kind == TARGET)[0]
+    assert rows.h[r] == pytest.approx(gap**2 - cbf.obstacle_clearance**2)
+    assert np.allclose(-rows.A[r], 2 * gap * left)
+    rows = build_rows(dataclasses.replace(ctx, target_frustum=True), cbf)
     assert rows.h[r] == pytest.approx(gap - 0.75 - np.sqrt(2) * cbf.obstacle_clearance)
-    assert np.allclose(-rows.A[r], left + [0, 0, 1])  # away from the car and up
+    assert np.allclose(-rows.A[r], left + [0, 0, 1])
 
 
 @pytest.mark.parametrize("model", ["paper", "moving-target"])
@@ -369,18 +378,24 @@ def test_edges_occluder_sees_a_cube_whose_axis_point_misses():
 
 
 @pytest.mark.parametrize("below", [True, False])
-def test_over_the_car_footprint_the_way_out_is_up(below):
-    """A UAV inside the car's box (below its centre or not) or anywhere over its footprint is
-    sent straight up: h is its height over the top minus sqrt(2) clearance."""
+def test_inside_the_car_box_the_way_out_is_never_its_bottom(below):
+    """A UAV inside the car's box below its centre is sent up or sideways (the car stands on the
+    ground), and the row's h is the grounded box barrier; over the footprint the frustum sends
+    it straight up, h its height over the top minus sqrt(2) clearance."""
     cbf = CBFConfig().resolve()
+    cl, z0 = cbf.obstacle_clearance, np.zeros(3)
     q, half = np.array([0.0, 0.0, 0.75]), np.array([3.0, 3.0, 1.0])
-    for z in (0.3 if below else 1.5, 4.0):
-        p = np.array([0.4, -0.2, z])
+    p = np.array([0.4, -0.2, 0.3 if below else 1.5])
+    ax, ay, az, h, _drift = target_row(p, q, z0, half, 0.0, cl, z0, False)
+    assert h == pytest.approx(h_box(p, q, half, cl, grounded=True)[0])
+    top = q[2] + half[2] - p[2]
+    assert h == pytest.approx(-(top**2) - cl**2)
+    assert az < 0 and ax == 0 and ay == 0  # -grad h . V <= b: an upward velocity
+    for z in (p[2], 4.0):
         ax, ay, az, h, _drift = target_row(
-            p, q, np.zeros(3), half, 0.0, cbf.obstacle_clearance, np.zeros(3)
+            p * [1, 1, 0] + [0, 0, z], q, z0, half, 0.0, cl, z0, True
         )
-        assert h == pytest.approx(z - 1.75 - np.sqrt(2) * cbf.obstacle_clearance)
-        # -grad h . V <= b: the row asks for an upward velocity only
+        assert h == pytest.approx(z - 1.75 - np.sqrt(2) * cl)
         assert az == -1.0 and ax == 0 and ay == 0
 
 

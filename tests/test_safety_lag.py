@@ -135,9 +135,7 @@ def test_one_uav_keeps_a_closing_pair_safe_when_its_team_mate_cannot_brake():
 
 @pytest.mark.parametrize("seed", range(5))
 def test_static_and_target_rows_equal_the_second_order_condition(seed):
-    """Box obstacles, the floor and the moving car: b - A u = tau (psi-dot + psi / tau), for
-    the car's frustum at most that (no curvature: exact beside a face, conservative at a
-    corner, where it is convex)."""
+    """Box obstacles, the floor and the moving car: b - A u = tau (psi-dot + psi / tau)."""
     rng = np.random.default_rng(700 + seed)
     p = rng.uniform(-1, 1, 3) + [0, 0, 3]
     v, u = rng.uniform(-3, 3, 3), rng.uniform(-5, 5, 3)
@@ -162,7 +160,7 @@ def test_static_and_target_rows_equal_the_second_order_condition(seed):
         FLOOR: (CBF.gamma_z, lambda j, t: me(t)[2] - CBF.z_min),
         TARGET: (
             CBF.gamma_obstacle,
-            lambda j, t: car_h(me(t), q + vq * t, car, c, heading),
+            lambda j, t: h_box(me(t), q + vq * t, car, c, heading, grounded=True)[0],
         ),
     }
     for kind, (gamma1, h_of) in cases.items():
@@ -170,11 +168,7 @@ def test_static_and_target_rows_equal_the_second_order_condition(seed):
         for r in sel:
             j = rows.index[r]
             expected = hocbf_rate(lambda t, j=j, h_of=h_of: h_of(j, t), gamma1)
-            got = rows.b[r] - rows.A[r] @ u
-            if kind == TARGET and _at_corner(p, q, car, heading):
-                assert got <= expected + 1e-5
-            else:
-                assert got == pytest.approx(expected, rel=1e-5, abs=1e-5)
+            assert rows.b[r] - rows.A[r] @ u == pytest.approx(expected, rel=1e-5, abs=1e-5)
 
 
 def _at_corner(p, q, half, heading) -> bool:
@@ -185,10 +179,12 @@ def _at_corner(p, q, half, heading) -> bool:
     return bool((np.abs(local) > half[:2]).all())
 
 
+@pytest.mark.parametrize("frustum", [False, True])
 @pytest.mark.parametrize("seed", range(5))
-def test_a_growing_car_box_row_equals_the_second_order_condition(seed):
-    """An undetected car's box with faces moving out per axis: b - A u = tau (psi-dot +
-    psi / tau) with h of its growing frustum beside and over it (a flat side: no curvature)."""
+def test_a_growing_car_box_row_equals_the_second_order_condition(seed, frustum):
+    """A stale car's box with faces moving out per axis: b - A u = tau (psi-dot + psi / tau)
+    with h of the growing box, or of its frustum (no curvature: exact beside a face and over
+    the footprint, at most that beside a corner, where the frustum is convex)."""
     rng = np.random.default_rng(750 + seed)
     q, heading = np.array([0.0, 0.0, 0.75]), rng.uniform(-3, 3)
     half = rng.uniform(1.0, 4.0, 3)
@@ -205,17 +201,19 @@ def test_a_growing_car_box_row_equals_the_second_order_condition(seed):
         target_half_extents=half,
         target_heading=heading,
         target_growth=growth,
+        target_frustum=frustum,
         velocity=v,
     )
     me, cl = path(p, v, u), CBF.obstacle_clearance
     rows, sel = rows_of(ctx, TARGET)
-    expected = hocbf_rate(
-        lambda t: car_h(me(t), q, half + growth * t, cl, heading),
-        CBF.gamma_obstacle,
-    )
+    if frustum:
+        h_of = lambda t: car_h(me(t), q, half + growth * t, cl, heading)  # noqa: E731
+    else:
+        h_of = lambda t: h_box(me(t), q, half + growth * t, cl, heading, grounded=True)[0]  # noqa: E731
+    expected = hocbf_rate(h_of, CBF.gamma_obstacle)
     r = sel[0]
     got = rows.b[r] - rows.A[r] @ u
-    if _at_corner(p, q, half, heading):
+    if frustum and _at_corner(p, q, half, heading):
         assert got <= expected + 1e-5
     else:
         assert got == pytest.approx(expected, rel=1e-5, abs=1e-5)

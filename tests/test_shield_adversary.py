@@ -173,3 +173,35 @@ def test_a_pinned_uav_does_not_let_its_team_mate_in():
     run = sa.run_one(world, "seek-obstacle", True, opts, expert_config("tuned"))
     assert run["statuses"].get("fallback", 0) > 0  # the pinned case does occur
     assert run["counts"]["collision"] == 0 and run["least"]["uav"] >= 0.0, run
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize(
+    ("world", "family", "base"),
+    [
+        (sa.WorldSpec(12, 3, "integrator", 0.0, 777012), "flee", 777000),
+        (sa.WorldSpec(1, 3, "integrator", 0.5, 777001), "spin-dive", 777000),
+        (sa.WorldSpec(26, 3, "lag", 0.0, 777026), "seek-obstacle", 777000),
+        (sa.WorldSpec(13, 3, "integrator", 0.5, 888013), "spin-dive", 888000),
+    ],
+)
+def test_an_unseen_car_does_not_split_the_team(world, family, base):
+    """Worlds where the car stays unseen for seconds: its reachable set grows, and a UAV beside
+    it keeps the car's row by climbing (the frustum) instead of sideways, away from its
+    team-mates, over 400 steps (5 s)."""
+    opts = sa.HarnessOptions(steps=400, seed=base, progress=False)
+    run = sa.run_one(world, family, True, opts, expert_config("tuned"))
+    assert run["counts"]["collision"] == 0 and run["counts"]["disconnection"] == 0, run
+    assert run["least"]["link"] >= 0.0
+
+
+@pytest.mark.slow
+def test_a_crowd_over_a_lost_car_does_not_press_a_uav_into_it():
+    """Ten UAVs under the lag model all seek the car and lose it from above: their rows conflict
+    and fallbacks give the car's row up, but the lost car's rising box lifts the crowd, so no
+    UAV is pressed into the car."""
+    opts = sa.HarnessOptions(steps=400, seed=888000, progress=False)
+    world = sa.WorldSpec(22, 10, "lag", 0.0, 888022)
+    run = sa.run_one(world, "seek-car", True, opts, expert_config("tuned"))
+    assert run["statuses"].get("fallback", 0) > 0  # the conflicting rows do occur
+    assert run["counts"]["collision"] == 0 and run["least"]["car"] > 0.0, run

@@ -407,6 +407,7 @@ class OnboardAgent:
                 "target_half_extents": box.half,
                 "target_heading": 0.0,
                 "target_growth": box.growth,
+                "target_frustum": box.stale,
             }
         # The env's own arrays, already float64 and finite: no re-validation.
         return SafetyContext.trusted(
@@ -456,6 +457,9 @@ class CarBox(NamedTuple):
     """(3,) half extents (m)."""
     growth: np.ndarray
     """(3,) speeds (m/s) at which its faces move outwards along x, y, z."""
+    stale: bool
+    """The car's reachable set (undetected for longer than ``target_stale_after``): its row is
+    the frustum over the box (`barrier_rows.target_row`)."""
 
 
 def car_box(
@@ -477,7 +481,8 @@ def car_box(
     the estimate at that moment (the caller keeps it; None: ``est`` itself): the car drives at
     most at ``car_speed``, so the box stands still and its faces move out at that speed,
     whatever the UKF predicts (after a hostile manoeuvre its velocity estimate can be off by
-    more than the car's speed). The top rises too, although the car stays on the ground: a UAV
+    more than the car's speed), and the car's row is the frustum over it, which a UAV beside it
+    keeps by climbing. The top rises too, although the car stays on the ground: a UAV
     over a car it has lost climbs at the car's speed instead of holding a ceiling over it,
     through which team-mates crowding above can press it when the rows of a dense team conflict
     and the car's (the estimate) is the one given up (`SafetyFilter`; seek-car in
@@ -516,7 +521,9 @@ def car_box(
         g_xy += car_speed
         g_z += car_speed
     velocity = _ZEROS3 if stale > 0.0 else est.target_velocity
-    return CarBox(center, velocity, np.array((hxy, hxy, hz)), np.array((g_xy, g_xy, g_z)))
+    return CarBox(
+        center, velocity, np.array((hxy, hxy, hz)), np.array((g_xy, g_xy, g_z)), stale > 0.0
+    )
 
 
 _ZEROS3 = np.zeros(3)

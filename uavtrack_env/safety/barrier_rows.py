@@ -63,36 +63,42 @@ _SQRT2 = math.sqrt(2.0)
 
 
 @numba.njit(cache=True)
-def target_row(p, q, vq, half, heading, clearance, growth):  # pragma: no cover (compiled)
-    """The car, a box at q with yaw ``heading`` standing on the ground and moving at V_q, as a
-    frustum barrier: (-grad h, h, drift).
+def target_row(p, q, vq, half, heading, clearance, growth, frustum):  # pragma: no cover (compiled)
+    """The car, a box at q with yaw ``heading`` standing on the ground and moving at V_q:
+    (-grad h, h, drift).
 
-    ``h = d_xy + (z - z_top) - sqrt(2) clearance``: d_xy the horizontal distance to the box's
-    footprint (0 over it), z_top its top. Its zero set keeps at least ``clearance`` from the box:
-    beside it d_xy >= sqrt(2) clearance + (z_top - z), above it d_xy + (z - z_top) >= sqrt(2)
-    clearance implies a distance >= clearance. The price is room near the ground; the gain is
-    that climbing always raises h (grad_z h = 1), so a UAV beside a box that grows (an
-    undetected car's reachable set, `onboard.car_box`) can keep its row by climbing instead of
-    being pushed away from its team-mates, and over the footprint h is the height above the top.
-    h is convex in p, so the rows' linearisation is conservative in discrete time.
+    A tracked car: h = sdist(p, box)^2 - clearance^2 (`box_sdist`, grounded: from inside, the
+    way out is a side or the top). A stale car (``frustum``, its box the growing reachable set
+    of `onboard.car_box`): ``h = d_xy + (z - z_top) - sqrt(2) clearance``, d_xy the horizontal
+    distance to the footprint (0 over it), z_top the top. The frustum's zero set keeps at least
+    ``clearance`` from the box (beside it d_xy >= sqrt(2) clearance + z_top - z; above it
+    d_xy + z - z_top >= sqrt(2) clearance implies a distance >= clearance), and climbing always
+    raises it (grad_z h = 1): a UAV beside a growing box keeps its row by climbing instead of
+    being pushed sideways, away from its team-mates, for as long as the car stays lost. Both are
+    convex in p, so the rows' linearisation is conservative in discrete time.
+
     h-dot = grad h . (V - V_q) for a translating box (its heading rate neglected), so ``drift =
-    -grad h . V_q``; faces moving outwards at ``growth`` (3,) m/s along the box's axes close
-    in at ``|n_x| growth_x + |n_y| growth_y + growth_z`` (n the footprint's unit normal in the
-    box's frame; exact, corners included).
+    -grad h . V_q``; faces moving outwards at ``growth`` (3,) m/s along the box's axes close in
+    at ``sum_a |grad_a h| growth_a`` in the box's frame (exact: d/dt of h as the half sizes grow).
     """
     c, s = math.cos(heading), math.sin(heading)
-    dx, dy = p[0] - q[0], p[1] - q[1]
+    dx, dy, dz = p[0] - q[0], p[1] - q[1], p[2] - q[2]
     lx, ly = c * dx + s * dy, -s * dx + c * dy
-    ox, oy = max(abs(lx) - half[0], 0.0), max(abs(ly) - half[1], 0.0)
-    dxy = math.sqrt(ox * ox + oy * oy)
-    nx = ny = 0.0
-    if dxy > 0.0:
-        nx, ny = math.copysign(ox / dxy, lx), math.copysign(oy / dxy, ly)
-    gx, gy = c * nx - s * ny, s * nx + c * ny
-    h = dxy + (p[2] - q[2] - half[2]) - _SQRT2 * clearance
-    drift = -(gx * vq[0] + gy * vq[1] + vq[2])
-    drift -= abs(nx) * growth[0] + abs(ny) * growth[1] + growth[2]
-    return -gx, -gy, -1.0, h, drift
+    if frustum:
+        ox, oy = max(abs(lx) - half[0], 0.0), max(abs(ly) - half[1], 0.0)
+        dxy = math.sqrt(ox * ox + oy * oy)
+        gx_l = gy_l = 0.0
+        if dxy > 0.0:
+            gx_l, gy_l = math.copysign(ox / dxy, lx), math.copysign(oy / dxy, ly)
+        gz = 1.0
+        h = dxy + dz - half[2] - _SQRT2 * clearance
+    else:
+        d2, gx_l, gy_l, gz = box_sdist(lx, ly, dz, half[0], half[1], half[2], True)
+        h = d2 - clearance * clearance
+    gx, gy = c * gx_l - s * gy_l, s * gx_l + c * gy_l
+    drift = -(gx * vq[0] + gy * vq[1] + gz * vq[2])
+    drift -= abs(gx_l) * growth[0] + abs(gy_l) * growth[1] + abs(gz) * growth[2]
+    return -gx, -gy, -gz, h, drift
 
 
 @numba.njit(cache=True)
@@ -109,6 +115,7 @@ def first_order_rows(
     car_half,
     heading,
     growth,
+    frustum,
     d_s,
     r_s,
     r_c,
@@ -124,7 +131,7 @@ def first_order_rows(
       convex, so forward Euler needs no margin).
     * obstacle: boxes (``box_model``; not in the paper), h = sdist(p, box)^2 - clearance^2,
       A = -grad h; or the paper's points (IV-A), h = ||p - p_o||^2 - R_s^2. Static: no drift.
-    * target (if ``car``): `target_row` (a frustum over the car's box).
+    * target (if ``car``): `target_row` (a box, or for a stale car a frustum over it).
     * floor (not in the paper): h = z - z_min, A = (0, 0, -1) (linear: exact in discrete time).
     * connect (29)-(34), j in N_ci = {||p - p_j|| <= R_c}: ``A = 2 (p - p_j)``, h = R_c^2 -
       ||d||^2 (concave: `cbf.RowBuilder` subtracts the discrete-time margin).
@@ -179,7 +186,7 @@ def first_order_rows(
     sizes[1] = m
     if car:
         A[r, 0], A[r, 1], A[r, 2], h[r], drift[r] = target_row(
-            p, q, vq, car_half, heading, clearance, growth
+            p, q, vq, car_half, heading, clearance, growth, frustum
         )
         r += 1
         sizes[2] = 1
@@ -218,6 +225,7 @@ def all_rows(
     car_half,
     heading,
     growth,
+    frustum,
     d_s,
     r_s,
     r_c,
@@ -249,6 +257,7 @@ def all_rows(
         car_half,
         heading,
         growth,
+        frustum,
         d_s,
         r_s,
         r_c,

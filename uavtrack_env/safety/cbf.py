@@ -103,6 +103,9 @@ class SafetyContext:
     """(3,) speeds (m/s) at which the car box's faces move outwards along its axes (x, y in the
     car's frame, z): an undetected car's reachable set (`onboard.car_box`); a scalar: every
     axis alike."""
+    target_frustum: bool = False
+    """The car's row is the frustum over its box (`barrier_rows.target_row`), which climbing
+    always keeps; for a stale car (`onboard.car_box`). False: the box barrier."""
     neighbour_ids: tuple[int, ...] | None = None
     """Optional agent ids of `neighbours`, used only to name rows ("uav:<id>")."""
     velocity: np.ndarray | None = None
@@ -365,6 +368,7 @@ class RowBuilder:
             ctx.target_half_extents if car else _ZEROS3,
             ctx.target_heading if car else 0.0,
             ctx.target_growth,
+            bool(ctx.target_frustum),
             cbf.d_s,
             cbf.r_s,
             cbf.r_c,
@@ -417,20 +421,35 @@ class RowBuilder:
         rho, sigma = ctx.neighbour_radius, ctx.neighbour_velocity_radius
         standoff = cbf.obstacle_clearance if self.obstacle_model == "box" else cbf.r_s
         grad = -A
-        dv_t = _ZEROS3
-        if sizes[2]:  # the car's row: its velocity relative to the car's faces
+        dv_t, curv_t = _ZEROS3, 0.0
+        frustum = bool(sizes[2]) and bool(ctx.target_frustum)
+        if sizes[2]:  # the car's row: its velocity relative to the car's faces, its curvature
             t = sizes[0] + sizes[1]
             dv_t = car_relative_velocity(
                 v, ctx.target_velocity, grad[t], ctx.target_heading, ctx.target_growth
             )
+            if not frustum:  # the frustum's Hessian is >= 0 (h convex): 0 is the safe bound
+                curv_t = self._target_curvature(ctx.target_heading, grad[t], dv_t, h[t])
         return second_order_b(
             A, h, b, margin, kind, index, sizes, v, _neighbour_velocities(ctx),
-            grad @ v, dv_t, rho is not None,
+            grad @ v, dv_t, curv_t, frustum, rho is not None,
             _ZEROS3 if rho is None else rho, sigma is not None, _ZEROS3 if sigma is None else sigma,
             self.lag_tau, cbf.gamma_s, cbf.gamma_c, cbf.gamma_obstacle, cbf.gamma_z,
-            cbf.obstacle_clearance**2, standoff, standoff**2,
+            cbf.obstacle_clearance, cbf.obstacle_clearance**2, standoff, standoff**2,
             self.obstacle_model == "box", cbf.r_s, cbf.r_c, cbf.alpha_v, self.brake_decel,
         )  # fmt: skip
+
+    def _target_curvature(
+        self, heading: float, grad: np.ndarray, dv: np.ndarray, h: float
+    ) -> float:
+        """dv' H dv of the target's box row, in the car's frame (its box is axis-aligned there);
+        dv the velocity relative to the car's faces."""
+        c, s_ = math.cos(heading), math.sin(heading)
+        rot = np.array(((c, s_, 0.0), (-s_, c, 0.0), (0.0, 0.0, 1.0)))  # world -> car frame
+        g_l, dv_l = rot @ grad, rot @ dv
+        active = np.abs(g_l) > 1e-12 * max(float(np.abs(g_l).max()), 1e-300)
+        sign = 2.0 if h + self.cbf.obstacle_clearance**2 >= 0.0 else -2.0
+        return sign * float(active @ (dv_l * dv_l))
 
 
 def car_relative_velocity(

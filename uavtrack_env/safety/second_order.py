@@ -45,6 +45,8 @@ def second_order_b(
     nb_v,
     grad_v,
     target_dv,
+    target_curvature,
+    target_frustum,
     has_rho,
     rho,
     has_sigma,
@@ -54,6 +56,7 @@ def second_order_b(
     gamma_c,
     gamma_obstacle,
     gamma_z,
+    clearance,
     clearance2,
     standoff,
     standoff2,
@@ -66,8 +69,8 @@ def second_order_b(
     """Right-hand sides b of the rows ``A V <= b`` as second-order CBFs for ``v-dot = (u - v) /
     tau`` (`cbf.RowBuilder._second_order`), with braking-distance rows where
     ``brake_decel`` > 0. The caller passes what numpy computes through BLAS: ``grad_v`` =
-    (-A) @ v, and the car row's relative velocity (`cbf.car_relative_velocity`; the car's
-    frustum is convex, so its curvature is bounded by 0); ``clearance2``,
+    (-A) @ v, and the car row's relative velocity (`cbf.car_relative_velocity`) and curvature
+    (``target_frustum``: the row is the frustum of `barrier_rows.target_row`); ``clearance2``,
     ``standoff2``: the squares as Python computes them."""
     n = h.shape[0]
     ends = np.cumsum(sizes)
@@ -100,6 +103,7 @@ def second_order_b(
     if sizes[2]:
         r = starts[2]
         dv[r] = target_dv
+        curv[r] = target_curvature
         gamma1[r] = gamma_obstacle
     for r in range(starts[3], ends[3]):
         gamma1[r] = gamma_z  # H = 0
@@ -144,12 +148,15 @@ def second_order_b(
                 starts,
                 ends,
                 v,
+                target_frustum,
                 has_rho,
                 rho,
                 has_sigma,
                 sigma,
                 tau,
                 brake_decel,
+                clearance,
+                clearance2,
                 standoff,
                 standoff2,
                 r_s,
@@ -173,12 +180,15 @@ def _braking(
     starts,
     ends,
     v,
+    target_frustum,
     has_rho,
     rho,
     has_sigma,
     sigma,
     tau,
     a,
+    clearance,
+    clearance2,
     standoff,
     standoff2,
     r_s,
@@ -187,14 +197,13 @@ def _braking(
     """Right-hand sides of braking-distance rows on the same A as the collision, car, floor and
     connectivity rows (not in the paper): each keeps ``s - w^2 / (2 a) >= 0``.
 
-    s is the distance left before the row's limit (to the clearance of an obstacle, to the
-    car's frustum (h / ||grad h||: a plane, or convex at a corner), the floor, R_s from a
-    team-mate, or R_c), w > 0 the speed closing it along m = A / ||A|| (relative to the car's
-    faces for the car), a the deceleration one UAV guarantees (``brake_decel``; a team-mate
-    brakes as much, so a pair has 2a). With v-dot = (u - v) / tau (exact under
-    `ShieldOptions.accel_bound`) and the distance convex along the motion,
-    ``m . u <= m . v + tau a (gamma s_b / w - 1)`` keeps ``s_b = s - w^2 / (2 a_pair)`` from
-    decreasing faster than ``-gamma s_b``: at s_b = 0 it
+    s is the distance left before the row's limit (to the clearance of an obstacle or of the
+    car's box, h / ||grad h|| for its frustum, the floor, R_s from a team-mate, or R_c), w > 0
+    the speed closing it along m = A / ||A|| (relative to the car's faces for the car), a the
+    deceleration one UAV guarantees (``brake_decel``; a team-mate brakes as much, so a pair has
+    2a). With v-dot = (u - v) / tau (exact under `ShieldOptions.accel_bound`) and the distance
+    convex along the motion, ``m . u <= m . v + tau a (gamma s_b / w - 1)`` keeps ``s_b = s -
+    w^2 / (2 a_pair)`` from decreasing faster than ``-gamma s_b``: at s_b = 0 it
     asks for a deceleration of exactly a. Rows not closing (w <= 0) get +inf.
     """
     n = h.shape[0]
@@ -207,8 +216,11 @@ def _braking(
             decel[r] = 2.0 * a  # a pair: the team-mate brakes as much
     for r in range(starts[1], ends[1]):
         gap[r] = math.sqrt(max(h[r] + standoff2, 0.0)) - standoff
-    for r in range(starts[2], ends[2]):  # the car's frustum: a plane's distance along A
-        gap[r] = h[r] / max(norm[r], 1e-12)
+    for r in range(starts[2], ends[2]):
+        if target_frustum:  # a plane (convex at a corner): its distance along A
+            gap[r] = h[r] / max(norm[r], 1e-12)
+        else:
+            gap[r] = math.sqrt(max(h[r] + clearance2, 0.0)) - clearance
     for r in range(starts[3], ends[3]):
         gap[r] = h[r]
     for r in range(starts[0], ends[0]):
