@@ -343,6 +343,10 @@ def test_eq28_is_enforced():
         {"target_position": [1, 2]},
         {"target_velocity": [np.nan, 0, 0], "target_position": [1, 2, 3]},
         {"neighbours": [[1, 2, 3]], "neighbour_ids": (1, 2)},
+        {"target_growth": [1.0, -0.5, 0.0]},
+        {"target_growth": [1.0, 1.0]},
+        {"target_growth": np.inf},
+        {"target_frustum": "yes"},
     ],
 )
 def test_context_rejects_bad_input(kwargs):

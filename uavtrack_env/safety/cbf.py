@@ -173,6 +173,9 @@ class SafetyContext:
         if not (np.isfinite(growth).all() and (growth >= 0.0).all()):
             raise ValueError(f"target_growth must be finite speeds >= 0 (m/s), got {growth}")
         put(self, "target_growth", growth)
+        if not isinstance(self.target_frustum, bool | np.bool_):
+            raise ValueError(f"target_frustum must be a bool, got {self.target_frustum!r}")
+        put(self, "target_frustum", bool(self.target_frustum))
         if self.velocity is not None:
             put(self, "velocity", _vec3("velocity", self.velocity))
         if self.neighbour_velocities is not None:
