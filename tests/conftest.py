@@ -35,6 +35,20 @@ def car_h(p, center, half, clearance, yaw=0.0) -> float:
     return float(np.linalg.norm(out) + d[2] - half[2] - np.sqrt(2.0) * clearance)
 
 
+def growing_car_case(rng: np.random.Generator):
+    """A stale car's box (centre q on the ground, yaw, half sizes, per-axis face speeds) and a
+    UAV position p beside, above, at a corner of or inside it, never under its centre (the
+    grounded box's bottom is never the way out): (q, heading, half, growth, p)."""
+    q, heading = np.array([0.0, 0.0, 0.75]), rng.uniform(-np.pi, np.pi)
+    half = rng.uniform(1.0, 4.0, 3)
+    growth = np.array([rng.uniform(0.2, 2.0), rng.uniform(0.2, 2.0), rng.choice([0.0, 0.5])])
+    c, s = np.cos(heading), np.sin(heading)
+    local = rng.uniform(-1.8, 1.8, 3) * half
+    local[2] = abs(local[2]) + 0.1
+    p = q + np.array([c * local[0] - s * local[1], s * local[0] + c * local[1], local[2]])
+    return q, heading, half, growth, p
+
+
 def step_both(a, b, actions: np.ndarray) -> tuple[list[dict], list[dict]]:
     """Step two SB3 VecEnvs with the same actions; assert equal observations, rewards and dones
     and return both info lists."""

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from scipy.optimize import minimize_scalar
 
-from tests.conftest import car_h
+from tests.conftest import car_h, growing_car_case
 from uavtrack_env.safety import SafetyContext, SafetyFilter, build_rows, check_eq28
 from uavtrack_env.safety.barrier_rows import target_row
 from uavtrack_env.safety.cbf import (
@@ -138,13 +138,8 @@ def test_a_growing_car_box_row_matches_finite_differences(seed, frustum):
     rng = np.random.default_rng(900 + seed)
     cbf = CBFConfig().resolve()
     cl = cbf.obstacle_clearance
-    q, th = np.array([0.0, 0.0, 0.75]), rng.uniform(-np.pi, np.pi)
-    half, vq = rng.uniform(1.0, 4.0, 3), rng.uniform(-1, 1, 3)
-    growth = np.array([rng.uniform(0.2, 2.0), rng.uniform(0.2, 2.0), rng.choice([0.0, 0.5])])
-    c, s = np.cos(th), np.sin(th)
-    local = rng.uniform(-1.6, 1.6, 3) * half
-    p = q + np.array([c * local[0] - s * local[1], s * local[0] + c * local[1], local[2]])
-    p[2] = max(p[2], q[2] + 0.1)  # the grounded box's bottom is never the way out
+    q, th, half, growth, p = growing_car_case(rng)
+    vq = rng.uniform(-1, 1, 3)
     ctx = SafetyContext(
         position=p,
         yaw=0.0,

@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from tests.conftest import car_h
+from tests.conftest import car_h, growing_car_case
 from uavtrack_env.config import DynamicsConfig
 from uavtrack_env.dynamics import integrate
 from uavtrack_env.geometry import world_to_cam_vec
@@ -186,13 +186,7 @@ def test_a_growing_car_box_row_equals_the_second_order_condition(seed, frustum):
     with h of the growing box, or of its frustum (no curvature: exact beside a face and over
     the footprint, at most that beside a corner, where the frustum is convex)."""
     rng = np.random.default_rng(750 + seed)
-    q, heading = np.array([0.0, 0.0, 0.75]), rng.uniform(-3, 3)
-    half = rng.uniform(1.0, 4.0, 3)
-    growth = np.array([rng.uniform(0.2, 2.0), rng.uniform(0.2, 2.0), rng.choice([0.0, 0.5])])
-    c, s = np.cos(heading), np.sin(heading)
-    local = rng.uniform(-1.8, 1.8, 3) * half
-    local[2] = abs(local[2]) + 0.1
-    p = q + np.array([c * local[0] - s * local[1], s * local[0] + c * local[1], local[2]])
+    q, heading, half, growth, p = growing_car_case(rng)
     v, u = rng.uniform(-3, 3, 3), rng.uniform(-5, 5, 3)
     ctx = SafetyContext(
         position=p,
@@ -206,10 +200,11 @@ def test_a_growing_car_box_row_equals_the_second_order_condition(seed, frustum):
     )
     me, cl = path(p, v, u), CBF.obstacle_clearance
     rows, sel = rows_of(ctx, TARGET)
-    if frustum:
-        h_of = lambda t: car_h(me(t), q, half + growth * t, cl, heading)  # noqa: E731
-    else:
-        h_of = lambda t: h_box(me(t), q, half + growth * t, cl, heading, grounded=True)[0]  # noqa: E731
+
+    def h_of(t: float) -> float:
+        args = (me(t), q, half + growth * t, cl, heading)
+        return car_h(*args) if frustum else h_box(*args, grounded=True)[0]
+
     expected = hocbf_rate(h_of, CBF.gamma_obstacle)
     r = sel[0]
     got = rows.b[r] - rows.A[r] @ u

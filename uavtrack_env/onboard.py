@@ -398,9 +398,9 @@ class OnboardAgent:
                 if margins.truncated_box_pad
                 else (0.0, 0.0)
             )
-            if est.steps_since_detection * DT <= margins.target_stale_after:
-                self._anchor = est
             box = car_box(est, margins, self._car_speed, cut_time, self._anchor)
+            if not box.stale:
+                self._anchor = est
             target = {
                 "target_position": box.center,
                 "target_velocity": box.velocity,
