@@ -25,7 +25,6 @@ import numpy as np
 from .config import DT, CameraConfig, EnvConfig
 from .estimation import Estimate, Measurement, TargetEstimator, UKFConfig
 from .estimation.team import step_team
-from .geometry import world_to_cam_vec
 from .presets import ExpertConfig
 from .safety import (
     CBFRows,
@@ -68,9 +67,11 @@ def update_trackers(trackers: Sequence[OnboardTracker], infos: Sequence[dict]) -
             if meas is not None:
                 tracker.estimate = tracker.estimator.reset(meas, pos, yaw)
             continue
-        # The UAV's own velocity (IMU/odometry) in the camera frame, as applied over the step.
-        vx, vy, vz = world_to_cam_vec(own["velocity"], yaw).tolist()
-        u_meas = np.array((vx, vy, vz, -float(own["yaw_rate"])))
+        # The UAV's own velocity (IMU/odometry) in the camera frame (`world_to_cam_vec`), as
+        # applied over the step.
+        c, s = math.cos(yaw), math.sin(yaw)
+        x, y, z = own["velocity"].tolist()
+        u_meas = np.array((s * x - c * y, -z, c * x + s * y, -float(own["yaw_rate"])))
         running.append(tracker)
         inputs.append((u_meas, pos, yaw, meas))
     estimates = step_team([t.estimator for t in running], inputs, trusted=True)
@@ -499,7 +500,8 @@ def car_box(
     diag, c = _CAR_DIAG, _CAR_HALF_HEIGHT
     stale = est.steps_since_detection * DT - margins.target_stale_after
     ref = est if stale <= 0.0 or anchor is None else anchor
-    sigma_p = math.sqrt(max(*ref.covariance.diagonal()[4:7].tolist(), 0.0))
+    P = ref.covariance
+    sigma_p = math.sqrt(max(P[4, 4], P[5, 5], P[6, 6], 0.0))
     pad = min(margins.target_margin + margins.target_sigmas * sigma_p, margins.target_margin_max)
     hxy, hz = diag + pad, c + pad
     g_xy = g_z = 0.0

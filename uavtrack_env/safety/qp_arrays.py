@@ -48,9 +48,10 @@ def camera_rows(A, b, kind, yaw, alpha_v, prune):  # pragma: no cover (compiled)
 
 
 @numba.njit(cache=True)
-def qp_arrays(v_hat, An, bn, weights, lb3, ub3, slack_reg):  # pragma: no cover (compiled)
+def qp_problem(v_hat, An, bn, weights, lb3, ub3, slack_reg):  # pragma: no cover (compiled)
     """``min 1/2 ||v - v_hat||^2 + sum w_j s_j`` s.t. ``An v - s <= bn``, box, s >= 0, one slack
-    per row with a weight > 0: (H, f, G, h, lb, ub) over x = [v, s]."""
+    per row with a weight > 0, over x = [v, s], in daqp's form: (H, f, G, bu, bl, sense) with
+    the bounds stacked, variables then rows (``bl <= [x; G x] <= bu``, rows unbounded below)."""
     m = bn.shape[0]
     ns = 0
     for j in range(m):
@@ -59,12 +60,12 @@ def qp_arrays(v_hat, An, bn, weights, lb3, ub3, slack_reg):  # pragma: no cover 
     H = np.zeros((nv, nv))
     f = np.empty(nv)
     G = np.zeros((m, nv))
-    lb = np.empty(nv)
-    ub = np.empty(nv)
+    bu = np.empty(nv + m)
+    bl = np.empty(nv + m)
     for i in range(3):
         H[i, i] = 1.0
         f[i] = -v_hat[i]
-        lb[i], ub[i] = lb3[i], ub3[i]
+        bl[i], bu[i] = lb3[i], ub3[i]
     col = 3
     for j in range(m):
         G[j, 0], G[j, 1], G[j, 2] = An[j, 0], An[j, 1], An[j, 2]
@@ -72,20 +73,23 @@ def qp_arrays(v_hat, An, bn, weights, lb3, ub3, slack_reg):  # pragma: no cover 
             H[col, col] = slack_reg
             f[col] = weights[j]
             G[j, col] = -1.0
-            lb[col], ub[col] = 0.0, INF
+            bl[col], bu[col] = 0.0, INF
             col += 1
-    return H, f, G, bn.copy(), lb, ub
+        bu[nv + j], bl[nv + j] = bn[j], -INF
+    return H, f, G, bu, bl, np.zeros(nv + m, np.int32)
 
 
 @numba.njit(cache=True)
-def daqp_bounds(lb, ub, h):  # pragma: no cover (compiled)
-    """daqp's stacked bounds: variables then rows (``bl <= [x; G x] <= bu``), and their sense."""
-    nv, m = lb.shape[0], h.shape[0]
-    bu = np.empty(nv + m)
-    bl = np.empty(nv + m)
-    bu[:nv], bl[:nv] = ub, lb
-    bu[nv:], bl[nv:] = h, -INF
-    return bu, bl, np.zeros(nv + m, np.int32)
+def with_cut(G, bu, bl, sense, v, speed, alpha_v):  # pragma: no cover (compiled)
+    """The problem of `qp_problem` plus the speed ball's tangent cut ``(v / speed)^T x <= alpha_v``
+    (a row on the velocity part of x)."""
+    m, nv = G.shape
+    G2 = np.zeros((m + 1, nv))
+    G2[:m] = G
+    G2[m, :3] = v / speed
+    bu2 = np.append(bu, alpha_v)
+    bl2 = np.append(bl, -INF)
+    return G2, bu2, bl2, np.zeros(sense.shape[0] + 1, np.int32)
 
 
 @numba.njit(cache=True)
@@ -98,14 +102,16 @@ def rows_hold(A, b, v, tol):  # pragma: no cover (compiled)
 
 
 @numba.njit(cache=True)
-def meets(x, G, h, lb, ub, tol):  # pragma: no cover (compiled)
-    """A solver's answer is finite and meets ``G x <= h`` within ``tol (1 + |h|)`` and the
-    bounds within ``tol``."""
-    for i in range(x.shape[0]):
-        if not math.isfinite(x[i]) or x[i] < lb[i] - tol or x[i] > ub[i] + tol:
+def meets(x, G, bu, bl, tol):  # pragma: no cover (compiled)
+    """A solver's answer to a `qp_problem` is finite and meets ``G x <= h`` (h the rows' upper
+    bounds) within ``tol (1 + |h|)`` and the variable bounds within ``tol``."""
+    nv = x.shape[0]
+    for i in range(nv):
+        if not math.isfinite(x[i]) or x[i] < bl[i] - tol or x[i] > bu[i] + tol:
             return False
-    for j in range(h.shape[0]):
-        if G[j] @ x - h[j] > tol * (1.0 + abs(h[j])):
+    for j in range(G.shape[0]):
+        h = bu[nv + j]
+        if G[j] @ x - h > tol * (1.0 + abs(h)):
             return False
     return True
 
@@ -137,6 +143,20 @@ def row_violations(An, bn, v, soft, active_tol):  # pragma: no cover (compiled)
     over_soft = np.flatnonzero(over & soft)
     over_hard = np.flatnonzero(over & ~soft)
     return active, over_soft, over_hard, viol, viol[over_soft].sum(), viol[over_hard].sum()
+
+
+@numba.njit(cache=True)
+def outcome(An, bn, kinds, soft_from, active_tol, u, u_safe, alpha_v, v_max):  # pragma: no cover
+    """What a changed action does (`SafetyFilter`'s report): `row_violations` at its velocity
+    with the rows of kind >= ``soft_from`` soft, whether the speed ball and the box are active,
+    and ``||u_safe - u||``."""
+    v = u_safe[:3]
+    soft = kinds >= soft_from
+    active, over_soft, over_hard, viol, slack, hard = row_violations(An, bn, v, soft, active_tol)
+    speed = np.dot(v, v) >= alpha_v**2 * (1.0 - 1e-9)  # BLAS, as numpy's v @ v
+    box = max(abs(v[0]), abs(v[1]), abs(v[2])) >= v_max * (1.0 - 1e-9)
+    d = u_safe - u
+    return active, over_soft, over_hard, viol, slack, hard, speed, box, math.sqrt(np.dot(d, d))
 
 
 @numba.njit(cache=True)

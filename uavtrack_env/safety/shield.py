@@ -72,12 +72,12 @@ from uavtrack_env.safety.cbf import (
 from uavtrack_env.safety.config import CBFConfig
 from uavtrack_env.safety.qp_arrays import (
     INF,
-    daqp_bounds,
     family_lows,
     meets,
-    qp_arrays,
-    row_violations,
+    outcome,
+    qp_problem,
     triage,
+    with_cut,
 )
 from uavtrack_env.validation import Fields as _Fields
 
@@ -343,7 +343,7 @@ class SafetyFilter:
             u_safe = np.array((0.0, 0.0, 0.0, w))
             status, solver = "fallback", "brake"
         return u_safe, self._report(
-            status, u, u_safe, rows, ctx, t0, solver, calls, An, bn, kinds >= CONNECT, kept
+            status, u, u_safe, rows, ctx, t0, solver, calls, An, bn, kinds, kept
         )
 
     # ----------------------------------------------------------------- layers
@@ -367,9 +367,9 @@ class SafetyFilter:
         it conflicts with the collision and altitude rows, and from then on outweighs
         occlusion 100:1. A fallback gives up the lowest-priority hard family that is left.
         """
+        yield "optimal", np.zeros(len(kinds))
         opt = self.options
         occlusion, connect = kinds == OCCLUSION, kinds == CONNECT
-        yield "optimal", np.zeros(len(kinds))
         if occlusion.any():
             yield "relaxed", np.where(occlusion, opt.soft_penalty, 0.0)
         base = np.where(
@@ -389,14 +389,13 @@ class SafetyFilter:
 
     def _solve(self, v_hat, An, bn, weights, lb3, ub3) -> tuple[np.ndarray | None, int]:
         """min 1/2||v - v_hat||^2 + sum w_j s_j  s.t.  An v - s <= bn, box, s >= 0, with cuts."""
-        H, f, G, h, lb, ub = qp_arrays(
+        H, f, G, bu, bl, sense = qp_problem(
             v_hat, An, bn, weights, lb3, ub3, self.options.slack_regularization
         )
-        nv = len(f)
         calls = 0
         v, speed = None, 0.0
         for it in range(self.options.norm_cuts + 1):
-            x = self._backend(H, f, G, h, lb, ub)
+            x = self._backend(H, f, G, bu, bl, sense)
             calls += 1
             if x is None:
                 if v is None:
@@ -410,17 +409,14 @@ class SafetyFilter:
                 return v, calls
             if it == self.options.norm_cuts:
                 return v * (self.alpha_v / speed), calls
-            cut = np.zeros((1, nv))
-            cut[0, :3] = v / speed
-            G = np.vstack([G, cut])
-            h = np.append(h, self.alpha_v)
+            G, bu, bl, sense = with_cut(G, bu, bl, sense, v, speed, self.alpha_v)
         return None, calls  # pragma: no cover (loop always returns)
 
-    def _backend(self, H, f, G, h, lb, ub) -> np.ndarray | None:
-        """One QP solve; None on infeasibility, solver error or an inaccurate answer."""
+    def _backend(self, H, f, G, bu, bl, sense) -> np.ndarray | None:
+        """One QP solve of a `qp_problem`; None on infeasibility, solver error or an inaccurate
+        answer."""
         try:
             if self.solver == "daqp-direct":
-                bu, bl, sense = daqp_bounds(lb, ub, h)
                 x, _, flag, _ = daqp.solve(H, f, G, bu, bl, sense, primal_tol=_PRIMAL_TOL)
                 if flag < 1:
                     return None
@@ -429,14 +425,15 @@ class SafetyFilter:
                     kwargs = {"eps_abs": _PRIMAL_TOL, "eps_rel": 0.0}
                 else:
                     kwargs = {"primal_tol": _PRIMAL_TOL}
-                ub_q = np.where(ub >= INF, np.inf, ub)
+                nv = len(f)
+                h, ub = bu[nv:], bu[:nv]
                 x = qpsolvers.solve_qp(
                     H,
                     f,
                     G if len(h) else None,
                     h if len(h) else None,
-                    lb=lb,
-                    ub=ub_q,
+                    lb=bl[:nv],
+                    ub=np.where(ub >= INF, np.inf, ub),
                     solver=self.solver,
                     **kwargs,
                 )
@@ -445,29 +442,29 @@ class SafetyFilter:
         except Exception:  # a solver crash must not take the UAV down: the caller falls back
             return None
         x = np.asarray(x, dtype=float)
-        return x if meets(x, G, h, lb, ub, self.options.verify_tol) else None
+        return x if meets(x, G, bu, bl, self.options.verify_tol) else None
 
     # ----------------------------------------------------------------- report
-    def _report(self, status, u, u_safe, rows, ctx, t0, solver, calls, An, bn, soft, kept):
+    def _report(self, status, u, u_safe, rows, ctx, t0, solver, calls, An, bn, kinds, kept):
         """Report for a changed action; slack and violations are measured at the returned action."""
-        v = u_safe[:3]
         ids = ctx.neighbour_ids
-        active, over_soft, over_hard, viol, slack_total, hard_violation = row_violations(
-            An, bn, v, soft, max(self.options.tol, 1e-7)
-        )
+        active, over_soft, over_hard, viol, slack_total, hard_violation, speed, box, norm = (
+            outcome(An, bn, kinds, CONNECT, max(self.options.tol, 1e-7), u, u_safe,
+                    self.alpha_v, self.v_max)
+        )  # fmt: skip
         active_rows = [rows.name(kept[j], ids) for j in active.tolist()]
         slack_rows = {rows.name(kept[j], ids): float(viol[j]) for j in over_soft.tolist()}
         gave_up = [rows.name(kept[j], ids) for j in over_hard.tolist()]
-        if v @ v >= self.alpha_v**2 * (1.0 - 1e-9):
+        if speed:
             active_rows.append("speed")
-        if max(map(abs, v.tolist())) >= self.v_max * (1.0 - 1e-9):
+        if box:
             active_rows.append("box")
         if u_safe[3] != u[3]:
             active_rows.append("yaw_rate")
         return ShieldReport(
             status=status,
             active=True,
-            correction_norm=_norm(u_safe - u),
+            correction_norm=norm,
             slack=float(slack_total),
             active_rows=active_rows,
             solver=solver,
@@ -483,11 +480,6 @@ class SafetyFilter:
 
 _ZEROS3 = np.zeros(3)
 _N_KINDS = len(KIND_NAMES)
-
-
-def _norm(x: np.ndarray) -> float:
-    """The Euclidean norm of a vector (as `np.linalg.norm` computes it: sqrt of x . x)."""
-    return math.sqrt(x @ x)
 
 
 def _checked_nominal(u_nominal: np.ndarray, ctx: SafetyContext) -> np.ndarray:
