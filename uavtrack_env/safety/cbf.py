@@ -358,7 +358,7 @@ class RowBuilder:
         nb, oc = ctx.neighbours, ctx.obstacle_centers
         rho = ctx.neighbour_radius
         car = ctx.target_position is not None
-        A, b, h, gamma, drift, margin, kind, index, sizes = all_rows(
+        A, floats, ints, sizes = all_rows(
             ctx.position,
             nb,
             np.zeros(len(nb)) if rho is None else rho,
@@ -386,6 +386,8 @@ class RowBuilder:
             self._gammas,
             self._margins,
         )
+        b, h, gamma, drift, margin = floats
+        kind, index = ints
         if self.lag_tau > 0.0:
             b = self._second_order(ctx, A, h, b, margin, kind, index, sizes)
         return CBFRows(A, b, h, gamma, drift, margin, kind, index)

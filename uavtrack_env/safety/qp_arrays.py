@@ -160,6 +160,46 @@ def outcome(An, bn, kinds, soft_from, active_tol, u, u_safe, alpha_v, v_max):  #
 
 
 @numba.njit(cache=True)
+def _bounds(
+    u, yaw, velocity, has_velocity, A, b, v_max, w_max, tol, accel_step, lb3, ub3, alpha_v
+):  # pragma: no cover (compiled)
+    """`triage`'s bounds and its nominal check: (w, lb, ub, has_box, in_bounds, V), V the
+    nominal velocity in the global frame."""
+    vx, vy, vz, wn = u[0], u[1], u[2], u[3]
+    w = min(max(wn, -w_max), w_max)
+    c, s = math.cos(yaw), math.sin(yaw)
+    lb, ub = lb3.copy(), ub3.copy()
+    has_box = False
+    if accel_step > 0.0 and has_velocity and b.shape[0] > 0 and not rows_hold(A, b, velocity, tol):
+        x, y, z = velocity[0], velocity[1], velocity[2]
+        vc = (s * x - c * y, -z, c * x + s * y)  # world_to_cam_vec
+        for i in range(3):
+            lb[i] = max(vc[i] - accel_step, lb3[i])
+            ub[i] = min(vc[i] + accel_step, ub3[i])
+        has_box = True
+    in_bounds = vx * vx + vy * vy + vz * vz <= alpha_v**2
+    for i in range(3):
+        if has_box:
+            in_bounds &= lb[i] <= u[i] <= ub[i]
+        else:
+            in_bounds &= abs(u[i]) <= v_max
+    V = np.array((s * vx + c * vz, -c * vx + s * vz, -vy))  # cam_to_world_vec
+    return w, lb, ub, has_box, in_bounds, V
+
+
+@numba.njit(cache=True)
+def nominal_holds(
+    u, yaw, velocity, has_velocity, A, b, alpha_v, v_max, w_max, tol, accel_step, lb3, ub3
+):  # pragma: no cover (compiled)
+    """`triage`'s stage 0 alone: the nominal ``u`` meets every bound and row (a bool, which
+    returns to Python far cheaper than `triage`'s arrays)."""
+    w, _lb, _ub, _box, in_bounds, V = _bounds(
+        u, yaw, velocity, has_velocity, A, b, v_max, w_max, tol, accel_step, lb3, ub3, alpha_v
+    )
+    return in_bounds and w == u[3] and rows_hold(A, b, V, tol)
+
+
+@numba.njit(cache=True)
 def triage(
     u,
     yaw,
@@ -184,34 +224,20 @@ def triage(
     The bounds on the camera-frame velocity are Table II's box ``lb3``, ``ub3`` and the speed ball
     ``alpha_v``, intersected, while a row asks for braking (``A V > b`` at the actual global
     velocity), with the box ``accel_step`` around that velocity. Stage 0: the nominal ``u`` meets
-    every bound and row (A V^g <= b); 1: ``v``, ``u``'s velocity or its closed-form projection
-    onto the bounds (``bounds_kind`` 0: the ball lies inside the box, 1: the box inside the ball,
-    2: neither), meets every row; 2: a QP is needed, with the camera-frame rows
-    (`camera_rows`) and the bounds lb, ub. ``w``: the yaw rate clipped to ``w_max``.
+    every bound and row (A V^g <= b; `nominal_holds`); 1: ``v``, ``u``'s velocity or its
+    closed-form projection onto the bounds (``bounds_kind`` 0: the ball lies inside the box, 1:
+    the box inside the ball, 2: neither), meets every row; 2: a QP is needed, with the
+    camera-frame rows (`camera_rows`) and the bounds lb, ub. ``w``: the yaw rate clipped to
+    ``w_max``.
     """
-    vx, vy, vz, wn = u[0], u[1], u[2], u[3]
-    w = min(max(wn, -w_max), w_max)
-    c, s = math.cos(yaw), math.sin(yaw)
-    lb, ub = lb3.copy(), ub3.copy()
-    has_box = False
-    if accel_step > 0.0 and has_velocity and b.shape[0] > 0 and not rows_hold(A, b, velocity, tol):
-        x, y, z = velocity[0], velocity[1], velocity[2]
-        vc = (s * x - c * y, -z, c * x + s * y)  # world_to_cam_vec
-        for i in range(3):
-            lb[i] = max(vc[i] - accel_step, lb3[i])
-            ub[i] = min(vc[i] + accel_step, ub3[i])
-        has_box = True
+    w, lb, ub, has_box, in_bounds, V = _bounds(
+        u, yaw, velocity, has_velocity, A, b, v_max, w_max, tol, accel_step, lb3, ub3, alpha_v
+    )
+    vx, vy, vz = u[0], u[1], u[2]
     v = np.array((vx, vy, vz))
-    in_bounds = vx * vx + vy * vy + vz * vz <= alpha_v**2
-    for i in range(3):
-        if has_box:
-            in_bounds &= lb[i] <= v[i] <= ub[i]
-        else:
-            in_bounds &= abs(v[i]) <= v_max
-    V = np.array((s * vx + c * vz, -c * vx + s * vz, -vy))  # cam_to_world_vec
     # no rows, typed as camera_rows' (numba needs one type per returned value)
     An, bn, kinds, kept = camera_rows(A[:0], b[:0], kind[:0], yaw, alpha_v, prune)
-    if in_bounds and w == wn and rows_hold(A, b, V, tol):
+    if in_bounds and w == u[3] and rows_hold(A, b, V, tol):
         return 0, v, w, An, bn, kinds, kept, lb, ub
     An, bn, kinds, kept = camera_rows(A, b, kind, yaw, alpha_v, prune)
     closed = in_bounds

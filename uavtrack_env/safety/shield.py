@@ -74,6 +74,7 @@ from uavtrack_env.safety.qp_arrays import (
     INF,
     family_lows,
     meets,
+    nominal_holds,
     outcome,
     qp_problem,
     triage,
@@ -322,16 +323,20 @@ class SafetyFilter:
         self, u: np.ndarray, ctx: SafetyContext, rows: CBFRows, t0: float
     ) -> tuple[np.ndarray, ShieldReport]:
         velocity = ctx.velocity
-        stage, v, w, An, bn, kinds, kept, lb, ub = triage(
-            u, ctx.yaw, _ZEROS3 if velocity is None else velocity, velocity is not None,
-            rows.A, rows.b, rows.kind, self.alpha_v, self.v_max, self.w_max, self.options.tol,
-            self._accel_step, self._lb3, self._ub3, self.options.prune, self._bounds_code,
-        )  # fmt: skip
-        if stage == 0:
+        has_velocity, velocity = velocity is not None, _ZEROS3 if velocity is None else velocity
+        if nominal_holds(
+            u, ctx.yaw, velocity, has_velocity, rows.A, rows.b, self.alpha_v, self.v_max,
+            self.w_max, self.options.tol, self._accel_step, self._lb3, self._ub3,
+        ):  # fmt: skip
             return u, ShieldReport(
                 "nominal", False, 0.0, 0.0, [], time_us=(time.perf_counter() - t0) * 1e6,
                 rows=rows, neighbour_ids=ctx.neighbour_ids,
             )  # fmt: skip
+        stage, v, w, An, bn, kinds, kept, lb, ub = triage(
+            u, ctx.yaw, velocity, has_velocity, rows.A, rows.b, rows.kind, self.alpha_v,
+            self.v_max, self.w_max, self.options.tol, self._accel_step, self._lb3, self._ub3,
+            self.options.prune, self._bounds_code,
+        )  # fmt: skip
         status, solver, calls = "optimal", "closed-form", 0
         if stage == 2:
             try:
