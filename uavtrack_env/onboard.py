@@ -198,7 +198,7 @@ class NeighbourTable:
 
     def _wrap(self, believed: tuple) -> NeighbourBelief:
         """A `NeighbourBelief` from `_believe`'s arrays."""
-        k, pos, vel, radius, vel_radius = believed
+        (k, ages), (pos, vel), (radius, vel_radius) = believed
         if len(k) == len(self._names):
             names, ids = self._all
         else:
@@ -208,7 +208,7 @@ class NeighbourTable:
         belief = object.__new__(NeighbourBelief)  # frozen: fields set as dataclasses do
         belief.__dict__.update(
             names=names, positions=pos, velocities=vel, position_radius=radius,
-            velocity_radius=vel_radius, ages=self._age[k], ids=ids,
+            velocity_radius=vel_radius, ages=ages, ids=ids,
         )  # fmt: skip
         return belief
 
@@ -245,16 +245,18 @@ def _take_messages(
 
 @numba.njit(cache=True)
 def _believe(known, p, v, v_err, age, dt, speed, accel):  # pragma: no cover (compiled)
-    """`NeighbourTable.belief`'s arrays for the ``known`` team-mates (``accel`` < 0: none):
-    their indices, positions, velocities, position and velocity radii."""
+    """`NeighbourTable.belief`'s arrays for the ``known`` team-mates (``accel`` < 0: none), in
+    three blocks (each array returned to Python costs ~0.5 us): [indices, ages] (2, m),
+    [positions, velocities] (2, m, 3) and [position radii, velocity radii] (2, m)."""
     ks = np.flatnonzero(known)
     m = ks.shape[0]
-    pos = np.empty((m, 3))
-    vel = np.empty((m, 3))
-    radius = np.empty(m)
-    vel_radius = np.zeros(m)
+    ints = np.empty((2, m), np.int64)
+    motion = np.empty((2, m, 3))
+    radii = np.zeros((2, m))
+    pos, vel, radius, vel_radius = motion[0], motion[1], radii[0], radii[1]
     for i in range(m):
         k = ks[i]
+        ints[0, i], ints[1, i] = k, age[k]
         t = age[k] * dt
         for a in range(3):
             vel[i, a] = v[k, a]
@@ -269,7 +271,7 @@ def _believe(known, p, v, v_err, age, dt, speed, accel):  # pragma: no cover (co
             for a in range(3):
                 pos[i, a] = p[k, a] + v[k, a] * t
             vel_radius[i] = min(err + accel * t, 2.0 * speed)
-    return ks, pos, vel, radius, vel_radius
+    return ints, motion, radii
 
 
 class OnboardAgent:
