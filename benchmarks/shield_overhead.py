@@ -23,8 +23,13 @@ one, so the per-agent-step figures are the fair comparison.
 Then the same for ``VectorCBFShield`` over ``vector_env(--vector)``: bare and shielded
 agent-steps/s, and its own time per agent-step (its step minus the vector env's step inside).
 
+``--count-calls``: instead of timing, count the Python-level calls (Python functions and
+builtins, as a profiler sees them) the shield makes per agent-step, outside the env's step: a
+deterministic measure of its interpreter work for comparing commits on a VM whose speed drifts
+within minutes.
+
 Run: python benchmarks/shield_overhead.py [--steps 2000] [--repeats 3] [--vector 16]
-[--dynamics lag] (lag: second-order rows, `lag_aware`)
+[--dynamics lag] [--count-calls] (lag: second-order rows, `lag_aware`)
 """
 
 from __future__ import annotations
@@ -36,6 +41,7 @@ for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
 
 import argparse  # noqa: E402
 import functools  # noqa: E402
+import sys  # noqa: E402
 import time  # noqa: E402
 
 import numpy as np  # noqa: E402
@@ -108,6 +114,47 @@ def run(shield: bool, amplitude: float, steps: int, seed: int) -> dict[str, np.n
     return {k: np.asarray(v) for k, v in times.items()}
 
 
+def count_calls(amplitude: float, steps: int, seed: int) -> float:
+    """Python-level calls per agent-step the shield makes outside the env's checked step and
+    its action validation, over ``steps`` steps of seeded episodes."""
+    counts = {"calls": 0, "agents": 0}
+    inside = [0]
+
+    def hook(_frame, event, _arg) -> None:
+        if event in ("call", "c_call") and not inside[0]:
+            counts["calls"] += 1
+
+    def outside_count(fn):
+        @functools.wraps(fn)
+        def run(*args, **kwargs):
+            inside[0] += 1
+            try:
+                return fn(*args, **kwargs)
+            finally:
+                inside[0] -= 1
+
+        return run
+
+    rng = np.random.default_rng(seed)
+    done, episode = 0, 0
+    while done < steps:
+        raw = uavtrack_v0.parallel_env(**WORLD)
+        env = CBFShield(raw)
+        env.reset(seed=seed + episode)
+        raw._step_checked = outside_count(raw._step_checked)
+        raw.validate_actions = outside_count(raw.validate_actions)
+        while env.agents and done < steps:
+            actions = {a: amplitude * rng.uniform(-1.0, 1.0, 4) for a in env.agents}
+            counts["agents"] += len(actions)
+            sys.setprofile(hook)
+            env.step(actions)
+            sys.setprofile(None)
+            done += 1
+        env.close()
+        episode += 1
+    return counts["calls"] / counts["agents"]
+
+
 def run_vector(shield: bool, amplitude: float, steps: int, seed: int, k: int) -> dict:
     """Total and inner (the vector env's own step) times (s) and agent-steps of ``steps`` steps
     of ``vector_env(k)``, bare or under `VectorCBFShield`."""
@@ -155,8 +202,18 @@ def main() -> None:
     ap.add_argument(
         "--dynamics", default="integrator", choices=("integrator", "lag"), help="UAV motion model"
     )
+    ap.add_argument(
+        "--count-calls", action="store_true", help="count the shield's Python calls, no timing"
+    )
     args = ap.parse_args()
     WORLD["dynamics"] = {"model": args.dynamics}
+    if args.count_calls:
+        run(True, 1.0, 50, args.seed + 10**6)  # loads the compiled kernels outside the count
+        for label, amp in (("random actions", 1.0), ("small actions", 0.05)):
+            per = count_calls(amp, args.steps, args.seed)
+            print(f"== n={N_UAVS}, {args.dynamics} dynamics, {label} ({args.steps} steps)")
+            print(f"  the shield's Python calls per agent-step: {per:.1f}")
+        return
     onboard.step_team = _timed(onboard.step_team, _UKF_TIMES)
     if not args.all_cores and hasattr(os, "sched_setaffinity"):
         os.sched_setaffinity(0, {min(os.sched_getaffinity(0))})
