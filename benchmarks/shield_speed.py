@@ -5,13 +5,19 @@ Context: 2 neighbours, 10 box obstacles, a moving target; half the calls need a 
 the SafetyContext construction time, the row-building time per occluder point of (38), and the
 bare QP solve through qpsolvers vs. daqp called directly (qpsolvers' own overhead).
 
-Run: /work/venv/bin/python benchmarks/shield_speed.py [--calls 4000]
+Then the onboard stack's own path (`SafetyFilter.certify_trusted` with the rows built once, as
+`CBFShield` calls it) on the contexts of a shielded episode (random world, n = 3, random actions):
+medians of rows and of safe-nominal and corrected certifications, each call timed ``--live-repeats``
+times and its fastest taken (the warm-cache cost: the VM's speed drifts within minutes).
+
+Run: python benchmarks/shield_speed.py [--calls 4000] [--live-steps 300] [--live-repeats 5]
 """
 
 from __future__ import annotations
 
 import argparse
 import dataclasses
+import math
 import time
 
 import numpy as np
@@ -53,10 +59,60 @@ def timed(fn, n: int) -> np.ndarray:
     return out * 1e6
 
 
+def live_contexts(steps: int, seed: int) -> list[tuple]:
+    """(filter, command, context, rows) of every certification in a seeded shielded episode."""
+    from uavtrack_env import uavtrack_v0
+    from uavtrack_env.wrappers import CBFShield
+
+    env = CBFShield(uavtrack_v0.parallel_env(scenario="random", n_uavs=3, max_cycles=steps))
+    env.reset(seed=seed)
+    calls = []
+    for agent in env.onboard.values():
+
+        def record(u, agent=agent, certify=agent.certify_trusted):
+            calls.append((agent.filter, u.copy(), agent.context(), agent.rows()))
+            return certify(u)
+
+        agent.certify_trusted = record
+    rng = np.random.default_rng(seed)
+    while env.agents:
+        env.step({a: rng.uniform(-1.0, 1.0, 4) for a in env.agents})
+    env.close()
+    return calls
+
+
+def live_section(steps: int, repeats: int, seed: int) -> None:
+    """Rows and `certify_trusted` on an episode's own contexts, fastest of ``repeats`` each."""
+    calls = live_contexts(steps, seed)
+
+    def fastest(fn) -> float:
+        fn()
+        best = math.inf
+        for _ in range(repeats):
+            t0 = time.perf_counter()
+            fn()
+            best = min(best, time.perf_counter() - t0)
+        return best * 1e6
+
+    rows = [fastest(lambda f=f, c=c: f._rows(c)) for f, _u, c, _r in calls]
+    certify = [
+        fastest(lambda f=f, u=u, c=c, r=r: f.certify_trusted(u, c, r)) for f, u, c, r in calls
+    ]
+    nominal = np.array([f.certify_trusted(u, c, r)[1].status == "nominal" for f, u, c, r in calls])
+    certify = np.array(certify)
+    print(
+        f"live contexts ({len(calls)} certifications, {1 - nominal.mean():.0%} corrected): "
+        f"rows median {np.median(rows):6.1f} us | certify_trusted nominal "
+        f"{np.median(certify[nominal]):6.1f} us, corrected {np.median(certify[~nominal]):6.1f} us"
+    )
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--calls", type=int, default=4000, help="certify() calls per backend")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--live-steps", type=int, default=300, help="steps of the shielded episode")
+    ap.add_argument("--live-repeats", type=int, default=5, help="timings per live call")
     args = ap.parse_args()
     rng = np.random.default_rng(args.seed)
 
@@ -123,6 +179,7 @@ def main() -> None:
     ):
         fn(0)
         print(f"bare QP {name} median {np.median(timed(fn, 3000)):7.1f} us")
+    live_section(args.live_steps, args.live_repeats, args.seed)
 
 
 if __name__ == "__main__":
