@@ -50,7 +50,7 @@ def camera_rows(A, b, kind, yaw, alpha_v, prune):  # pragma: no cover (compiled)
 @numba.njit(cache=True)
 def qp_problem(v_hat, An, bn, weights, lb3, ub3, slack_reg):  # pragma: no cover (compiled)
     """``min 1/2 ||v - v_hat||^2 + sum w_j s_j`` s.t. ``An v - s <= bn``, box, s >= 0, one slack
-    per row with a weight > 0, over x = [v, s], in daqp's form: (H, f, G, bu, bl, sense) with
+    per row with a weight > 0, over x = [v, s], in daqp's form: (H, f, G, [bu, bl], sense) with
     the bounds stacked, variables then rows (``bl <= [x; G x] <= bu``, rows unbounded below)."""
     m = bn.shape[0]
     ns = 0
@@ -60,8 +60,8 @@ def qp_problem(v_hat, An, bn, weights, lb3, ub3, slack_reg):  # pragma: no cover
     H = np.zeros((nv, nv))
     f = np.empty(nv)
     G = np.zeros((m, nv))
-    bu = np.empty(nv + m)
-    bl = np.empty(nv + m)
+    bounds = np.empty((2, nv + m))
+    bu, bl = bounds[0], bounds[1]
     for i in range(3):
         H[i, i] = 1.0
         f[i] = -v_hat[i]
@@ -76,20 +76,22 @@ def qp_problem(v_hat, An, bn, weights, lb3, ub3, slack_reg):  # pragma: no cover
             bl[col], bu[col] = 0.0, INF
             col += 1
         bu[nv + j], bl[nv + j] = bn[j], -INF
-    return H, f, G, bu, bl, np.zeros(nv + m, np.int32)
+    return H, f, G, bounds, np.zeros(nv + m, np.int32)
 
 
 @numba.njit(cache=True)
 def with_cut(G, bu, bl, sense, v, speed, alpha_v):  # pragma: no cover (compiled)
     """The problem of `qp_problem` plus the speed ball's tangent cut ``(v / speed)^T x <= alpha_v``
-    (a row on the velocity part of x)."""
+    (a row on the velocity part of x): (G, [bu, bl], sense)."""
     m, nv = G.shape
     G2 = np.zeros((m + 1, nv))
     G2[:m] = G
     G2[m, :3] = v / speed
-    bu2 = np.append(bu, alpha_v)
-    bl2 = np.append(bl, -INF)
-    return G2, bu2, bl2, np.zeros(sense.shape[0] + 1, np.int32)
+    k = bu.shape[0]
+    bounds = np.empty((2, k + 1))
+    bounds[0, :k], bounds[1, :k] = bu, bl
+    bounds[0, k], bounds[1, k] = alpha_v, -INF
+    return G2, bounds, np.zeros(sense.shape[0] + 1, np.int32)
 
 
 @numba.njit(cache=True)
@@ -218,8 +220,8 @@ def triage(
     prune,
     bounds_kind,
 ):  # pragma: no cover (compiled)
-    """The CBF-QP (47) up to its QP (`SafetyFilter.certify`): (stage, v, w, An, bn, kinds, kept,
-    lb, ub).
+    """The CBF-QP (47) up to its QP (`SafetyFilter.certify`): (stage, v, w, An, bn, [kinds,
+    kept] (2, m), [lb, ub] (2, 3)).
 
     The bounds on the camera-frame velocity are Table II's box ``lb3``, ``ub3`` and the speed ball
     ``alpha_v``, intersected, while a row asks for braking (``A V > b`` at the actual global
@@ -236,10 +238,13 @@ def triage(
     vx, vy, vz = u[0], u[1], u[2]
     v = np.array((vx, vy, vz))
     # no rows, typed as camera_rows' (numba needs one type per returned value)
-    An, bn, kinds, kept = camera_rows(A[:0], b[:0], kind[:0], yaw, alpha_v, prune)
+    bounds = np.empty((2, 3))
+    bounds[0], bounds[1] = lb, ub
     if in_bounds and w == u[3] and rows_hold(A, b, V, tol):
-        return 0, v, w, An, bn, kinds, kept, lb, ub
+        An, bn, kinds, kept = camera_rows(A[:0], b[:0], kind[:0], yaw, alpha_v, prune)
+        return 0, v, w, An, bn, _stacked(kinds, kept), bounds
     An, bn, kinds, kept = camera_rows(A, b, kind, yaw, alpha_v, prune)
+    ints = _stacked(kinds, kept)
     closed = in_bounds
     if not in_bounds:  # the closed-form projection onto the bounds, where there is one
         if has_box:  # exact when the box's projection lies inside the ball
@@ -256,5 +261,13 @@ def triage(
                 v[i] = min(max(v[i], -v_max), v_max)
             closed = True
     if closed and rows_hold(An, bn, v, tol):
-        return 1, v, w, An, bn, kinds, kept, lb, ub
-    return 2, np.array((vx, vy, vz)), w, An, bn, kinds, kept, lb, ub
+        return 1, v, w, An, bn, ints, bounds
+    return 2, np.array((vx, vy, vz)), w, An, bn, ints, bounds
+
+
+@numba.njit(cache=True)
+def _stacked(a, b):  # pragma: no cover (compiled)
+    """Two int arrays of one length as rows of one (2, m) array (one array to return, not two)."""
+    out = np.empty((2, a.shape[0]), np.int64)
+    out[0], out[1] = a, b
+    return out

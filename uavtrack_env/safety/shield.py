@@ -332,7 +332,7 @@ class SafetyFilter:
                 "nominal", False, 0.0, 0.0, [], time_us=(time.perf_counter() - t0) * 1e6,
                 rows=rows, neighbour_ids=ctx.neighbour_ids,
             )  # fmt: skip
-        stage, v, w, An, bn, kinds, kept, lb, ub = triage(
+        stage, v, w, An, bn, (kinds, kept), (lb, ub) = triage(
             u, ctx.yaw, velocity, has_velocity, rows.A, rows.b, rows.kind, self.alpha_v,
             self.v_max, self.w_max, self.options.tol, self._accel_step, self._lb3, self._ub3,
             self.options.prune, self._bounds_code,
@@ -394,7 +394,7 @@ class SafetyFilter:
 
     def _solve(self, v_hat, An, bn, weights, lb3, ub3) -> tuple[np.ndarray | None, int]:
         """min 1/2||v - v_hat||^2 + sum w_j s_j  s.t.  An v - s <= bn, box, s >= 0, with cuts."""
-        H, f, G, bu, bl, sense = qp_problem(
+        H, f, G, (bu, bl), sense = qp_problem(
             v_hat, An, bn, weights, lb3, ub3, self.options.slack_regularization
         )
         calls = 0
@@ -414,7 +414,7 @@ class SafetyFilter:
                 return v, calls
             if it == self.options.norm_cuts:
                 return v * (self.alpha_v / speed), calls
-            G, bu, bl, sense = with_cut(G, bu, bl, sense, v, speed, self.alpha_v)
+            G, (bu, bl), sense = with_cut(G, bu, bl, sense, v, speed, self.alpha_v)
         return None, calls  # pragma: no cover (loop always returns)
 
     def _backend(self, H, f, G, bu, bl, sense) -> np.ndarray | None:
