@@ -25,6 +25,7 @@ import numpy as np
 from .config import DT, CameraConfig, EnvConfig
 from .estimation import Estimate, Measurement, TargetEstimator, UKFConfig
 from .estimation.team import step_team
+from .geometry import world_to_cam_vec
 from .presets import ExpertConfig
 from .safety import (
     CBFRows,
@@ -67,11 +68,9 @@ def update_trackers(trackers: Sequence[OnboardTracker], infos: Sequence[dict]) -
             if meas is not None:
                 tracker.estimate = tracker.estimator.reset(meas, pos, yaw)
             continue
-        # The UAV's own velocity (IMU/odometry) in the camera frame (`world_to_cam_vec`), as
-        # applied over the step.
-        c, s = math.cos(yaw), math.sin(yaw)
-        x, y, z = own["velocity"].tolist()
-        u_meas = np.array((s * x - c * y, -z, c * x + s * y, -float(own["yaw_rate"])))
+        # The UAV's own velocity (IMU/odometry) in the camera frame, as applied over the step.
+        vx, vy, vz = world_to_cam_vec(own["velocity"], yaw).tolist()
+        u_meas = np.array((vx, vy, vz, -float(own["yaw_rate"])))
         running.append(tracker)
         inputs.append((u_meas, pos, yaw, meas))
     estimates = step_team([t.estimator for t in running], inputs, trusted=True)

@@ -220,29 +220,24 @@ def triage(
     prune,
     bounds_kind,
 ):  # pragma: no cover (compiled)
-    """The CBF-QP (47) up to its QP (`SafetyFilter.certify`): (stage, v, w, An, bn, [kinds,
-    kept] (2, m), [lb, ub] (2, 3)).
+    """The CBF-QP (47) up to its QP for a nominal ``u`` that `nominal_holds` rejected
+    (`SafetyFilter.certify`): (stage, v, w, An, bn, [kinds, kept] (2, m), [lb, ub] (2, 3)).
 
     The bounds on the camera-frame velocity are Table II's box ``lb3``, ``ub3`` and the speed ball
     ``alpha_v``, intersected, while a row asks for braking (``A V > b`` at the actual global
-    velocity), with the box ``accel_step`` around that velocity. Stage 0: the nominal ``u`` meets
-    every bound and row (A V^g <= b; `nominal_holds`); 1: ``v``, ``u``'s velocity or its
-    closed-form projection onto the bounds (``bounds_kind`` 0: the ball lies inside the box, 1:
-    the box inside the ball, 2: neither), meets every row; 2: a QP is needed, with the
+    velocity), with the box ``accel_step`` around that velocity. Stage 1: ``v``, ``u``'s velocity
+    or its closed-form projection onto the bounds (``bounds_kind`` 0: the ball lies inside the
+    box, 1: the box inside the ball, 2: neither), meets every row; 2: a QP is needed, with the
     camera-frame rows (`camera_rows`) and the bounds lb, ub. ``w``: the yaw rate clipped to
     ``w_max``.
     """
-    w, lb, ub, has_box, in_bounds, V = _bounds(
+    w, lb, ub, has_box, in_bounds, _V = _bounds(
         u, yaw, velocity, has_velocity, A, b, v_max, w_max, tol, accel_step, lb3, ub3, alpha_v
     )
     vx, vy, vz = u[0], u[1], u[2]
     v = np.array((vx, vy, vz))
-    # no rows, typed as camera_rows' (numba needs one type per returned value)
     bounds = np.empty((2, 3))
     bounds[0], bounds[1] = lb, ub
-    if in_bounds and w == u[3] and rows_hold(A, b, V, tol):
-        An, bn, kinds, kept = camera_rows(A[:0], b[:0], kind[:0], yaw, alpha_v, prune)
-        return 0, v, w, An, bn, _stacked(kinds, kept), bounds
     An, bn, kinds, kept = camera_rows(A, b, kind, yaw, alpha_v, prune)
     ints = _stacked(kinds, kept)
     closed = in_bounds
