@@ -6,8 +6,8 @@ single-threaded BLAS. The shield's cost per agent-step is split into
 
 * certify: one agent's certification = rows + CBF-QP (47) (the SafetyContext is built when the
   agent observes its info, which ``observe`` includes);
-* ukf: the team's UKF step that gives the shield its target estimates (`step_team`, one batched
-  pass for all agents), per agent-step;
+* ukf: the team's UKF step that gives the shield its target estimates (`TrackerBank.step`, one
+  compiled call for all agents), per agent-step;
 * observe: the UKF plus the team-mates' messages and the safety context, per agent-step;
 * own: the wrapper's own time per agent-step (its step minus the env's step inside it, i.e.
   the env's action validation and its checked step, both of which a bare ``env.step`` runs):
@@ -46,7 +46,7 @@ import time  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-from uavtrack_env import onboard, uavtrack_v0  # noqa: E402
+from uavtrack_env import uavtrack_v0  # noqa: E402
 from uavtrack_env.wrappers import CBFShield, VectorCBFShield  # noqa: E402
 
 N_UAVS = 3
@@ -57,7 +57,6 @@ WORLD: dict = {
     "terminate_on_collision": "agent",
 }
 """The worlds of every run (``--dynamics`` sets their motion model)."""
-_UKF_TIMES: list[float] = []
 
 
 def _timed(fn, sink: list[float]):
@@ -88,13 +87,13 @@ def run(shield: bool, amplitude: float, steps: int, seed: int) -> dict[str, np.n
     }
     rng = np.random.default_rng(seed)
     done, episode = 0, 0
-    _UKF_TIMES.clear()
-    times["ukf"] = _UKF_TIMES
     while done < steps:
         raw = uavtrack_v0.parallel_env(**WORLD)
         env = CBFShield(raw) if shield else raw
         env.reset(seed=seed + episode)
         if shield:  # instance-level wrappers: the class itself has no timing code
+            bank = env.onboard[raw.possible_agents[0]].tracker.bank
+            bank.step = _timed(bank.step, times["ukf"])
             for agent in env.onboard.values():
                 agent.certify_trusted = _timed(agent.certify_trusted, times["certify"])
             env._observe = _timed(env._observe, times["observe"])
@@ -214,7 +213,6 @@ def main() -> None:
             print(f"== n={N_UAVS}, {args.dynamics} dynamics, {label} ({args.steps} steps)")
             print(f"  the shield's Python calls per agent-step: {per:.1f}")
         return
-    onboard.step_team = _timed(onboard.step_team, _UKF_TIMES)
     if not args.all_cores and hasattr(os, "sched_setaffinity"):
         os.sched_setaffinity(0, {min(os.sched_getaffinity(0))})
 

@@ -1,5 +1,5 @@
 """Speed of the target UKF: plain filterpy, the vectorised subclass, and the team's filters
-stepped in one batched pass (`step_team`), per UAV-step (median microseconds).
+stepped in one compiled call (`TrackerBank`), per UAV-step (median microseconds).
 
 Run: python benchmarks/ukf_speed.py [--n 3000] [--team 3]
 """
@@ -13,7 +13,7 @@ import numpy as np
 
 from uavtrack_env.config import DT, CameraConfig
 from uavtrack_env.estimation import Measurement, TargetEstimator, UKFConfig, make_filter
-from uavtrack_env.estimation.team import step_team
+from uavtrack_env.estimation.bank import TrackerBank
 from uavtrack_env.estimation.ukf import measurement_model
 
 CAM = CameraConfig()
@@ -62,18 +62,16 @@ def _estimator_bench(vectorized: bool, n: int) -> tuple[float, float]:
 
 
 def _team_bench(k: int, n: int) -> tuple[float, float]:
-    """`step_team` for k UAVs (a detection each, then all in a dropout), per UAV-step."""
-    ests = [TargetEstimator(CAM, UKFConfig(), DT) for _ in range(k)]
-    p, yaw = np.array([-8.0, 0.0, 4.0]), 0.0
-    meas = Measurement(330.0, 300.0, 8.0, 3.1)
-    for est in ests:
-        est.reset(meas, p, yaw)
-    seen = [(np.zeros(4), p, yaw, meas)] * k
-    lost = [(np.zeros(4), p, yaw, None)] * k
+    """`TrackerBank.step` for k UAVs (a detection each, then all in a dropout), per UAV-step."""
+    bank = TrackerBank(k, CAM, UKFConfig(), DT)
+    state = [-8.0, 0.0, 4.0, 0.0, 0.0, 0.0, 0.0, 0.0]  # hovering, as in `_estimator_bench`
+    seen = np.array([[*state, 1.0, 330.0, 300.0, 8.0, 3.1, 0.0, 0.0]] * k)
+    lost = np.array([[*state, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0]] * k)
+    slots = list(range(k))
     for _ in range(400):
-        step_team(ests, seen)
-    detected = _median_us(lambda: step_team(ests, seen), n) / k
-    return detected, _median_us(lambda: step_team(ests, lost), n) / k
+        bank.step(slots, seen)
+    detected = _median_us(lambda: bank.step(slots, seen), n) / k
+    return detected, _median_us(lambda: bank.step(slots, lost), n) / k
 
 
 def main() -> None:
@@ -96,7 +94,7 @@ def main() -> None:
         print(f"{name:34s} {a:15.1f} {b:11.1f} {a / b:8.2f}x")
     team_seen, team_lost = _team_bench(args.team, n)
     print(
-        f"step_team, {args.team} UAVs, per UAV-step (detected / dropout): "
+        f"TrackerBank, {args.team} UAVs, per UAV-step (detected / dropout): "
         f"{team_seen:.1f} / {team_lost:.1f} us ({st_plain / team_seen:.1f}x / "
         f"{lost_plain / team_lost:.1f}x plain filterpy)"
     )

@@ -17,7 +17,7 @@ from .config import DT, EnvConfig
 from .control import NMPC, NMPCResult
 from .control.viewpoint import ViewpointPlanner
 from .geometry import world_to_cam_vec
-from .onboard import OnboardAgent, observe_team
+from .onboard import observe_team, onboard_team
 from .presets import ExpertConfig, expert_config
 from .safety import ShieldReport
 from .scenarios import Layout
@@ -55,9 +55,8 @@ class ExpertPolicy:
         self.env_config = env_config
         self.scale = env_config.limits.scale
         self.agent_names = list(agents)
-        self.onboard = {
-            a: OnboardAgent(a, i, env_config, cfg) for i, a in enumerate(self.agent_names)
-        }
+        team = onboard_team(self.agent_names, env_config, cfg)[0]
+        self.onboard = {agent.name: agent for agent in team}
         self.planners: dict[str, PlannerState] = {}
         self.layout: Layout | None = None
         self.timings: dict[str, list[float]] = defaultdict(list)

@@ -24,7 +24,7 @@ import numpy as np
 
 from .config import DT, CameraConfig, EnvConfig
 from .estimation import Estimate, Measurement, TargetEstimator, UKFConfig
-from .estimation.team import step_team
+from .estimation.bank import TrackerBank
 from .geometry import world_to_cam_vec
 from .presets import ExpertConfig
 from .safety import (
@@ -41,42 +41,90 @@ from .target import CAR_HALF_EXTENTS
 
 class OnboardTracker:
     """One UAV's UKF, fed step by step from its info (`update_trackers`); ``estimate`` is None
-    until a detection."""
+    until a detection. With ``UKFConfig.vectorized`` (the default) it is slot ``slot`` of a
+    `TrackerBank` its team shares (a bank of its own if ``bank`` is None), otherwise its own
+    `TargetEstimator` (plain filterpy)."""
 
-    def __init__(self, camera: CameraConfig, cfg: UKFConfig | None = None) -> None:
-        self.estimator = TargetEstimator(camera, cfg or UKFConfig())
-        self.estimate: Estimate | None = None
+    def __init__(
+        self,
+        camera: CameraConfig,
+        cfg: UKFConfig | None = None,
+        bank: TrackerBank | None = None,
+        slot: int = 0,
+    ) -> None:
+        cfg = cfg or UKFConfig()
+        self.bank: TrackerBank | None = None
+        self.estimator: TargetEstimator | None = None
+        self._estimate: Estimate | None = None
+        if cfg.vectorized:
+            self.bank, self.slot = bank or TrackerBank(1, camera, cfg), slot
+        else:
+            self.estimator, self.slot = TargetEstimator(camera, cfg), 0
+
+    @property
+    def estimate(self) -> Estimate | None:
+        """The latest estimate (None until the car was first detected)."""
+        bank = self.bank
+        return self._estimate if bank is None else bank.estimates[self.slot]
 
     def reset(self) -> None:
-        self.estimate = None
+        """Forget the estimate: the next detection initialises the filter."""
+        if self.bank is None:
+            self._estimate = None
+        else:
+            self.bank.forget(self.slot)
 
 
 def update_trackers(trackers: Sequence[OnboardTracker], infos: Sequence[dict]) -> list:
-    """Advance each UAV's filter with its info (measurement and own motion), the running filters
-    in one batched pass (`step_team`); returns each tracker's estimate (None until its first
-    detection)."""
-    running, inputs = [], []
+    """Advance each UAV's filter with its info (measurement and own motion): the trackers of one
+    `TrackerBank` in one compiled call, plain-filterpy trackers one by one; returns each
+    tracker's estimate (None until its first detection)."""
+    groups: dict[int, tuple[TrackerBank, list[int], list[tuple]]] = {}
     for tracker, info in zip(trackers, infos, strict=True):
-        own, m = info["own"], info["measurement"]
-        pos, yaw = own["position"], own["yaw"]
-        meas = None
-        if m["detected"]:
-            meas = Measurement.trusted(
-                m["u"], m["v"], m["depth"], m["psi"], m["truncated_u"], m["truncated_v"]
-            )
-        if tracker.estimate is None:
-            if meas is not None:
-                tracker.estimate = tracker.estimator.reset(meas, pos, yaw)
+        bank = tracker.bank
+        if bank is None:
+            _step_alone(tracker, info)
             continue
-        # The UAV's own velocity (IMU/odometry) in the camera frame, as applied over the step.
-        vx, vy, vz = world_to_cam_vec(own["velocity"], yaw).tolist()
-        u_meas = np.array((vx, vy, vz, -float(own["yaw_rate"])))
-        running.append(tracker)
-        inputs.append((u_meas, pos, yaw, meas))
-    estimates = step_team([t.estimator for t in running], inputs, trusted=True)
-    for tracker, est in zip(running, estimates, strict=True):
-        tracker.estimate = est
+        group = groups.get(id(bank))
+        if group is None:
+            group = groups[id(bank)] = (bank, [], [])
+        group[1].append(tracker.slot)
+        group[2].append(_input_row(info))
+    for bank, slots, rows in groups.values():
+        bank.step(slots, np.array(rows, float))
     return [t.estimate for t in trackers]
+
+
+def _input_row(info: dict) -> tuple:
+    """A `TrackerBank` input row (`bank.INPUT_COLUMNS`) of one UAV's info."""
+    own, m = info["own"], info["measurement"]
+    x, y, z = own["position"].tolist()
+    vx, vy, vz = own["velocity"].tolist()
+    state = (x, y, z, own["yaw"], vx, vy, vz, own["yaw_rate"])
+    if m["detected"]:
+        return (*state, 1.0, m["u"], m["v"], m["depth"], m["psi"], m["truncated_u"],
+                m["truncated_v"])  # fmt: skip
+    return (*state, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0)
+
+
+def _step_alone(tracker: OnboardTracker, info: dict) -> None:
+    """One plain-filterpy tracker's step (`TargetEstimator.reset`/`step`)."""
+    own, m = info["own"], info["measurement"]
+    pos, yaw = own["position"], own["yaw"]
+    meas = None
+    if m["detected"]:
+        meas = Measurement.trusted(
+            m["u"], m["v"], m["depth"], m["psi"], m["truncated_u"], m["truncated_v"]
+        )
+    est = tracker.estimator
+    if tracker._estimate is None:
+        if meas is not None:
+            tracker._estimate = est.reset(meas, pos, yaw)
+        return
+    # The UAV's own velocity (IMU/odometry) in the camera frame, as applied over the step.
+    vx, vy, vz = world_to_cam_vec(own["velocity"], yaw).tolist()
+    u_meas = np.array((vx, vy, vz, -float(own["yaw_rate"])))
+    tracker._estimate = est.step(u_meas, pos, yaw, meas)
 
 
 @dataclass(frozen=True)
@@ -284,7 +332,14 @@ class OnboardAgent:
     ``accel_bound`` = ``dynamics.a_max``). What this guarantees: docs/safety.md.
     """
 
-    def __init__(self, name: str, index: int, env_config: EnvConfig, config: ExpertConfig) -> None:
+    def __init__(
+        self,
+        name: str,
+        index: int,
+        env_config: EnvConfig,
+        config: ExpertConfig,
+        tracker: OnboardTracker | None = None,
+    ) -> None:
         self.name, self.index, self.config = name, index, config
         margins = config.margins
         cbf = config.cbf.resolve(env_config.violations.r_s, env_config.comms.r_c)
@@ -303,7 +358,7 @@ class OnboardAgent:
         self.filter = SafetyFilter(
             self.cbf, env_config.limits, solver=config.qp_solver, **dataclasses.asdict(options)
         )
-        self.tracker = OnboardTracker(env_config.camera, config.ukf)
+        self.tracker = tracker or OnboardTracker(env_config.camera, config.ukf)
         self._lag = lag
         self.neighbours = NeighbourTable(
             speed_bound=self.cbf.alpha_v,
@@ -434,6 +489,22 @@ def _take_and_believe(
     """`_take_messages`, then `_believe`: one step of `NeighbourTable.take`."""
     _take_messages(ks, pos, p, v, v_err, age, known, dt, accel, speed, timeout)
     return _believe(known, p, v, v_err, age, dt, speed, believe_accel)
+
+
+def onboard_team(
+    names: Sequence[str], env_config: EnvConfig, config: ExpertConfig, worlds: int = 1
+) -> list[list[OnboardAgent]]:
+    """The onboard stacks of ``worlds`` teams ``names`` (one list per world), their target
+    filters in one `TrackerBank` (`observe_team` steps them in one compiled call)."""
+    n, camera, ukf = len(names), env_config.camera, config.ukf
+    bank = TrackerBank(n * worlds, camera, ukf) if ukf.vectorized else None
+    return [
+        [
+            OnboardAgent(a, i, env_config, config, OnboardTracker(camera, ukf, bank, k * n + i))
+            for i, a in enumerate(names)
+        ]
+        for k in range(worlds)
+    ]
 
 
 def observe_team(agents: Sequence[OnboardAgent], infos: Sequence[dict]) -> None:

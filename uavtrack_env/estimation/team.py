@@ -1,28 +1,21 @@
-"""The target UKFs of a whole team stepped at once (section II-E, eqs. 10-11).
+"""The UKF step of several filters in one compiled kernel (section II-E, eqs. 10-11).
 
-`TargetEstimator.step` runs one UAV's filter through filterpy. `step_team` advances the filters of
-several UAVs with the same equations (Merwe's scaled sigma points, the process and measurement
-models (10)-(11), the unscented transform with circular psi means, filterpy's Kalman update and
-the estimator's covariance guard) in one numba-compiled kernel (`cache=True`: compiled once per
-machine, then loaded). Each estimator's own bookkeeping (the dropout fit of Remark 2, the held
-height, the clock) is shared with the single-UAV path through
-`TargetEstimator.begin_step`/`end_step`. The two paths agree to round-off
-(tests/test_ukf_team.py); ``UKFConfig.vectorized = False`` steps each UAV through plain filterpy.
+`TargetEstimator.step` runs one UAV's filter through filterpy. `_step_filters` runs the same
+equations (Merwe's scaled sigma points, the process and measurement models (10)-(11), the
+unscented transform with circular psi means, filterpy's Kalman update and the estimator's
+covariance guard) for K filters in one numba kernel (`cache=True`: compiled once per machine,
+then loaded); `bank.TrackerBank` wraps it with the estimator's bookkeeping. The two paths agree
+to round-off (tests/test_tracker_bank.py).
 """
 
 from __future__ import annotations
 
 import math
-import weakref
-from collections.abc import Sequence
 
 import numba
 import numpy as np
 
-from uavtrack_env.estimation.ukf import PSI, Estimate, Measurement, TargetEstimator
-
-StepInput = tuple[np.ndarray, np.ndarray, float, Measurement | None]
-"""`TargetEstimator.step`'s arguments: (u_applied, uav_position, uav_yaw, meas)."""
+from uavtrack_env.estimation.ukf import PSI, TargetEstimator
 
 _TWO_PI = 2.0 * math.pi
 
@@ -241,70 +234,10 @@ def sigma_points(x: np.ndarray, P: np.ndarray, lam: float) -> np.ndarray:
     return np.stack([_sigma_points(xk, Pk, float(lam)) for xk, Pk in zip(x, P, strict=True)])
 
 
-_CONSTANTS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
-
-
-def _constants(est: TargetEstimator) -> tuple[float, np.ndarray, np.ndarray, float]:
+def filter_constants(est: TargetEstimator) -> tuple[float, np.ndarray, np.ndarray, float]:
     """Merwe's lambda, the camera's (fx, fy, cu, cv), the x3 bounds and the x1/x2 limit of an
-    estimator, as the kernel takes them (its configs are frozen: computed once)."""
-    out = _CONSTANTS.get(est)
-    if out is None:
-        cam, cfg, points = est.camera, est.cfg, est.ukf.points_fn
-        lam = points.alpha**2 * (points.n + points.kappa) - points.n
-        cam_arr = np.array((cam.fx, cam.fy, cam.cu, cam.cv), float)
-        out = (float(lam), cam_arr, np.asarray(cfg.x3_bounds, float), float(cfg.x12_limit))
-        _CONSTANTS[est] = out
-    return out
-
-
-def step_team(
-    estimators: Sequence[TargetEstimator], inputs: Sequence[StepInput], trusted: bool = False
-) -> list[Estimate]:
-    """`TargetEstimator.step` for every estimator with its input, in one batched pass.
-
-    The estimators must share camera, `UKFConfig` and dt. Estimators whose config has
-    ``vectorized = False`` step one by one through plain filterpy. ``trusted``: the inputs are
-    the env's own data, as `TargetEstimator.begin_step_trusted` takes them (no checks)."""
-    if len(estimators) != len(inputs):
-        raise ValueError(f"{len(estimators)} estimators but {len(inputs)} inputs")
-    if not estimators:
-        return []
-    first = estimators[0]
-    for est in estimators[1:]:
-        same = est.camera is first.camera and est.cfg is first.cfg and est.dt == first.dt
-        if not same and (est.camera, est.cfg, est.dt) != (first.camera, first.cfg, first.dt):
-            raise ValueError("step_team needs estimators with one camera, UKFConfig and dt")
-    if not first.cfg.vectorized:
-        return [est.step(*inp) for est, inp in zip(estimators, inputs, strict=True)]
-    plans = [
-        (est.begin_step_trusted if trusted else est.begin_step)(*inp)
-        for est, inp in zip(estimators, inputs, strict=True)
-    ]
-    ukf = first.ukf
-    lam, *constants = _constants(first)
-    K = len(estimators)
-    x = np.array([est.ukf.x for est in estimators], float)
-    P = np.array([est.ukf.P for est in estimators], float)
-    seen = np.array([p.z is not None for p in plans])
-    z = np.zeros((K, ukf.R.shape[0]))
-    R = np.empty((K, *ukf.R.shape))
-    for k, plan in enumerate(plans):
-        R[k] = ukf.R if plan.R is None else plan.R
-        if plan.z is not None:
-            z[k] = plan.z
-    repairs = _step_filters(
-        x, P,
-        np.array([p.u for p in plans], float),
-        np.array([p.yaw_before for p in plans]),
-        np.array([p.accel for p in plans], float),
-        seen,
-        np.array([p.yaw for p in plans]),
-        z, R, float(first.dt), lam, ukf.Wm, ukf.Wc, ukf.Q, *constants, first._max_std,
-    )  # fmt: skip
-
-    out = []
-    for k, (est, plan) in enumerate(zip(estimators, plans, strict=True)):
-        est.ukf.x, est.ukf.P = x[k], P[k]  # rows of this call's own arrays
-        est.n_covariance_repairs += int(repairs[k])
-        out.append(est.end_step(plan))
-    return out
+    estimator, as `_step_filters` takes them."""
+    cam, cfg, points = est.camera, est.cfg, est.ukf.points_fn
+    lam = points.alpha**2 * (points.n + points.kappa) - points.n
+    cam_arr = np.array((cam.fx, cam.fy, cam.cu, cam.cv), float)
+    return float(lam), cam_arr, np.asarray(cfg.x3_bounds, float), float(cfg.x12_limit)

@@ -28,8 +28,8 @@ long dropouts cannot grow it without bound.
 
 Speed: :class:`VectorizedUKF` subclasses filterpy's filter and pushes all sigma points through
 fx and hx in one numpy call each; sigma points, weights, ``unscented_transform`` and the update
-equations stay filterpy's. `uavtrack_env.estimation.team.step_team` runs the same equations for
-a whole team on stacked arrays (see ``benchmarks/ukf_speed.py``).
+equations stay filterpy's. `uavtrack_env.estimation.bank.TrackerBank` runs the same equations and
+bookkeeping for a whole team in one compiled call (see ``benchmarks/ukf_speed.py``).
 """
 
 from __future__ import annotations
@@ -128,8 +128,8 @@ class UKFConfig:
     dropout_use_fit_velocity: bool = True
     """At the start of a dropout, replace the mean of V_q by the fitted velocity (Fig. 5)."""
     vectorized: bool = True
-    """Array code: a team's filters in one batched pass (`estimation.team.step_team`, ~10x
-    faster per UAV) and, for one UAV, the vectorised filterpy subclass (~5x); both equal plain
+    """Array code: a team's filters in one compiled call (`estimation.bank.TrackerBank`, the
+    onboard stacks' path) and, for one UAV, the vectorised filterpy subclass (~5x); both equal plain
     filterpy to round-off. False: plain filterpy, one UAV at a time."""
 
     def __post_init__(self) -> None:
@@ -632,7 +632,7 @@ class TargetEstimator:
         ``u_applied`` = [v_cx, v_cy, v_cz, omega_cy] in the camera frame held over the last dt,
         ``uav_position`` and ``uav_yaw`` the UAV pose now (after the step). Without a detection
         the filter only predicts, with the target acceleration (and, at the dropout's start, the
-        velocity) from the polynomial fit of Remark 2. `step_team` runs the same step for several
+        velocity) from the polynomial fit of Remark 2. `TrackerBank` runs the same step for several
         UAVs at once.
         """
         plan = self.begin_step(u_applied, uav_position, uav_yaw, meas)

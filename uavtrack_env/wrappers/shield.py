@@ -25,7 +25,7 @@ from pettingzoo.utils.wrappers import BaseParallelWrapper
 
 from uavtrack_env.config import EnvConfig
 from uavtrack_env.env import UAVTrackEnv
-from uavtrack_env.onboard import OnboardAgent, observe_team
+from uavtrack_env.onboard import observe_team, onboard_team
 from uavtrack_env.presets import ExpertConfig, expert_config
 from uavtrack_env.safety import SafetyContext, ShieldReport
 
@@ -75,9 +75,8 @@ class CBFShield(BaseParallelWrapper):
             raise TypeError(f"CBFShield wraps a UAVTrackEnv, got {type(raw).__name__}")
         self.config = cfg = expert_config(config)
         env_cfg = raw.config
-        self.onboard = {
-            a: OnboardAgent(a, i, env_cfg, cfg) for i, a in enumerate(raw.possible_agents)
-        }
+        team = onboard_team(raw.possible_agents, env_cfg, cfg)[0]
+        self.onboard = {agent.name: agent for agent in team}
         first = next(iter(self.onboard.values()))
         self.cbf, self.filter = first.cbf, first.filter
         warn_if_lag_unaware(env_cfg, cfg)

@@ -12,7 +12,7 @@ from typing import Any
 
 import numpy as np
 
-from uavtrack_env.onboard import OnboardAgent, observe_team
+from uavtrack_env.onboard import observe_team, onboard_team
 from uavtrack_env.presets import ExpertConfig, expert_config
 from uavtrack_env.safety import ShieldReport
 from uavtrack_env.vector import UAVTrackVectorEnv
@@ -41,10 +41,7 @@ class VectorCBFShield:
         env_cfg = venv.config
         warn_if_lag_unaware(env_cfg, cfg)
         names = venv.possible_agents
-        self.onboard = [
-            [OnboardAgent(a, i, env_cfg, cfg) for i, a in enumerate(names)]
-            for _ in range(venv.num_envs)
-        ]
+        self.onboard = onboard_team(names, env_cfg, cfg, venv.num_envs)
         self.last_reports: list[dict[str, ShieldReport]] = [{} for _ in range(venv.num_envs)]
         for name in (
             "num_envs", "possible_agents", "n_agents", "envs", "metadata",
