@@ -55,23 +55,17 @@ class OnboardTracker:
         cfg = cfg or UKFConfig()
         self.bank: TrackerBank | None = None
         self.estimator: TargetEstimator | None = None
-        self._estimate: Estimate | None = None
+        self.estimate: Estimate | None = None
+        """The latest estimate (None until the car was first detected)."""
         if cfg.vectorized:
             self.bank, self.slot = bank or TrackerBank(1, camera, cfg), slot
         else:
             self.estimator, self.slot = TargetEstimator(camera, cfg), 0
 
-    @property
-    def estimate(self) -> Estimate | None:
-        """The latest estimate (None until the car was first detected)."""
-        bank = self.bank
-        return self._estimate if bank is None else bank.estimates[self.slot]
-
     def reset(self) -> None:
         """Forget the estimate: the next detection initialises the filter."""
-        if self.bank is None:
-            self._estimate = None
-        else:
+        self.estimate = None
+        if self.bank is not None:
             self.bank.forget(self.slot)
 
 
@@ -79,7 +73,7 @@ def update_trackers(trackers: Sequence[OnboardTracker], infos: Sequence[dict]) -
     """Advance each UAV's filter with its info (measurement and own motion): the trackers of one
     `TrackerBank` in one compiled call, plain-filterpy trackers one by one; returns each
     tracker's estimate (None until its first detection)."""
-    groups: dict[int, tuple[TrackerBank, list[int], list[tuple]]] = {}
+    groups: dict[int, tuple[TrackerBank, list[OnboardTracker], list[tuple]]] = {}
     for tracker, info in zip(trackers, infos, strict=True):
         bank = tracker.bank
         if bank is None:
@@ -88,10 +82,13 @@ def update_trackers(trackers: Sequence[OnboardTracker], infos: Sequence[dict]) -
         group = groups.get(id(bank))
         if group is None:
             group = groups[id(bank)] = (bank, [], [])
-        group[1].append(tracker.slot)
+        group[1].append(tracker)
         group[2].append(_input_row(info))
-    for bank, slots, rows in groups.values():
-        bank.step(slots, np.array(rows, float))
+    for bank, members, rows in groups.values():
+        bank.step([t.slot for t in members], np.array(rows, float))
+        estimates = bank.estimates
+        for t in members:
+            t.estimate = estimates[t.slot]
     return [t.estimate for t in trackers]
 
 
@@ -117,14 +114,14 @@ def _step_alone(tracker: OnboardTracker, info: dict) -> None:
             m["u"], m["v"], m["depth"], m["psi"], m["truncated_u"], m["truncated_v"]
         )
     est = tracker.estimator
-    if tracker._estimate is None:
+    if tracker.estimate is None:
         if meas is not None:
-            tracker._estimate = est.reset(meas, pos, yaw)
+            tracker.estimate = est.reset(meas, pos, yaw)
         return
     # The UAV's own velocity (IMU/odometry) in the camera frame, as applied over the step.
     vx, vy, vz = world_to_cam_vec(own["velocity"], yaw).tolist()
     u_meas = np.array((vx, vy, vz, -float(own["yaw_rate"])))
-    tracker._estimate = est.step(u_meas, pos, yaw, meas)
+    tracker.estimate = est.step(u_meas, pos, yaw, meas)
 
 
 @dataclass(frozen=True)
@@ -170,6 +167,8 @@ class NeighbourTable:
     ) -> None:
         self.speed_bound, self.accel_bound = float(speed_bound), accel_bound
         self.timeout, self.dt = int(timeout), dt
+        self._believe_accel = -1.0 if accel_bound is None else accel_bound
+        """`_believe`'s acceleration bound (-1: none, the integrator model)."""
         self._names: list[str] = []
         self._ids: list[int] = []
         self._index: dict[str, int] = {}
@@ -203,7 +202,7 @@ class NeighbourTable:
         """`update` with this step's messages, then the `belief` (one compiled call)."""
         return self._wrap(
             _take_and_believe(
-                *self._messages(messages), *self._state(), self.timeout, self._believe_accel()
+                *self._messages(messages), *self._state(), self.timeout, self._believe_accel
             )
         )
 
@@ -218,7 +217,7 @@ class NeighbourTable:
                 self._age,
                 self.dt,
                 self.speed_bound,
-                self._believe_accel(),
+                self._believe_accel,
             )
         )
 
@@ -238,10 +237,6 @@ class NeighbourTable:
             self._pos, self._vel, self._vel_err, self._age, self._known, self.dt,
             self.accel_bound or 0.0, self.speed_bound,
         )  # fmt: skip
-
-    def _believe_accel(self) -> float:
-        """`_believe`'s acceleration bound (-1: none, the integrator model)."""
-        return -1.0 if self.accel_bound is None else self.accel_bound
 
     def _wrap(self, believed: tuple) -> NeighbourBelief:
         """A `NeighbourBelief` from `_believe`'s arrays."""

@@ -351,6 +351,7 @@ class RowBuilder:
         )
         self._margins = np.array((0.0, 0.0, 0.0, 0.0, self.margin, 0.0))
         self._point_mode = POINT_MODES.index(cbf.occlusion_point)
+        self._theta_star = cbf.theta_star
 
     def __call__(self, ctx: SafetyContext) -> CBFRows:
         """All member rows of the QP (47) for this context."""
@@ -379,7 +380,7 @@ class RowBuilder:
             cbf.obstacle_clearance,
             cbf.z_min,
             car and self.occlusion and len(oc) > 0,  # the occlusion rows (45), `occlusion_family`
-            cbf.theta_star,
+            self._theta_star,
             self._point_mode,
             cbf.occlusion_model == "moving-target",
             cbf.occlusion_size_margin,

@@ -120,19 +120,17 @@ def meets(x, G, bu, bl, tol):  # pragma: no cover (compiled)
 
 @numba.njit(cache=True)
 def family_lows(kind, h, n_kinds, hard_below):  # pragma: no cover (compiled)
-    """The least h of each row family (``kind`` in [0, n_kinds)): (lows, present, least h of
-    the families below ``hard_below``, inf without such rows)."""
-    lows = np.full(n_kinds, np.inf)
-    present = np.zeros(n_kinds, np.bool_)
-    hard = np.inf
+    """The least h of each row family (``kind`` in [0, n_kinds); NaN: no such row), then the
+    least h of the families below ``hard_below`` (inf without such rows), in one array."""
+    out = np.full(n_kinds + 1, np.nan)
+    out[n_kinds] = np.inf
     for j in range(h.shape[0]):
         k = kind[j]
-        if not present[k] or h[j] < lows[k]:
-            lows[k] = h[j]
-            present[k] = True
-        if k < hard_below and h[j] < hard:
-            hard = h[j]
-    return lows, present, hard
+        if not h[j] >= out[k]:  # NaN (absent) or a new least value
+            out[k] = h[j]
+        if k < hard_below and h[j] < out[n_kinds]:
+            out[n_kinds] = h[j]
+    return out
 
 
 @numba.njit(cache=True)

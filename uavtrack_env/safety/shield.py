@@ -198,9 +198,8 @@ class ShieldReport:
         """(`min_h_by_family`, `min_hard_h`) in one pass over the rows."""
         if self.rows is None or not len(self.rows.h):
             return {}, math.inf
-        lows, present, hard = family_lows(self.rows.kind, self.rows.h, _N_KINDS, CONNECT)
-        lows, present = lows.tolist(), present.tolist()
-        return {name: lows[k] for k, name in enumerate(KIND_NAMES) if present[k]}, hard
+        *lows, hard = family_lows(self.rows.kind, self.rows.h, _N_KINDS, CONNECT).tolist()
+        return {name: low for name, low in zip(KIND_NAMES, lows, strict=True) if low == low}, hard
 
     @property
     def h(self) -> dict[str, float]:
