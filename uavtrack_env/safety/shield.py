@@ -187,7 +187,9 @@ class ShieldReport:
     @property
     def min_hard_h(self) -> float:
         """Smallest barrier value of the hard rows (< 0: the state is already unsafe)."""
-        return self.family_minima()[1]
+        if self.rows is None or not len(self.rows.h):
+            return math.inf
+        return float(family_lows(self.rows.kind, self.rows.h, _N_KINDS, CONNECT)[_N_KINDS])
 
     @property
     def min_h_by_family(self) -> dict[str, float]:
@@ -342,8 +344,10 @@ class SafetyFilter:
                 v, status, solver, calls = self._solve_layers(v, An, bn, kinds, lb, ub)
             except Exception:  # never let a numerical failure take the UAV down: brake
                 v, status, solver, calls = np.zeros(3), "fallback", "brake", 0
-        u_safe = np.array((v[0], v[1], v[2], w))
-        if not math.isfinite(u_safe.sum()):  # defensive: never hand out NaN
+        v0, v1, v2 = v.tolist()
+        if math.isfinite(v0 + v1 + v2 + w):
+            u_safe = np.array((v0, v1, v2, w))
+        else:  # defensive: never hand out NaN
             u_safe = np.array((0.0, 0.0, 0.0, w))
             status, solver = "fallback", "brake"
         return u_safe, self._report(
