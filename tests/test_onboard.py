@@ -229,3 +229,44 @@ def test_the_trusted_context_builds_the_rows_of_a_checked_one():
     with pytest.raises(TypeError, match="no fields"):
         SafetyContext.trusted(position=np.zeros(3), yaw=0.0, speed=1.0)
     env.close()
+
+
+def test_bank_trackers_equal_plain_filterpy_trackers_on_an_episode():
+    """The trackers of a team's `TrackerBank` and plain-filterpy trackers (the preset's
+    `UKFConfig` with ``vectorized=False``), fed the same infos of an episode with detector
+    dropouts and crashing UAVs, hold the same estimates (to 1e-8) and start at the same
+    detection."""
+    import dataclasses
+
+    from uavtrack_env.onboard import OnboardTracker, onboard_team, update_trackers
+    from uavtrack_env.presets import expert_config
+
+    env = uavtrack_v0.parallel_env(**WORLD)
+    _, infos = env.reset(seed=3)
+    names, cam = env.possible_agents, env.config.camera
+    cfg = expert_config("tuned")
+    team = [a.tracker for a in onboard_team(names, env.config, cfg)[0]]
+    ukf = dataclasses.replace(cfg.ukf, vectorized=False)
+    plain = [OnboardTracker(cam, ukf) for _ in names]
+    assert all(t.bank is team[0].bank for t in team) and plain[0].bank is None
+    rng = np.random.default_rng(1)
+    compared = 0
+    while env.agents:
+        live = [names.index(a) for a in infos]
+        update_trackers([team[i] for i in live], list(infos.values()))
+        update_trackers([plain[i] for i in live], list(infos.values()))
+        for i in live:
+            b, p = team[i].estimate, plain[i].estimate
+            assert (b is None) == (p is None)
+            if b is not None:
+                assert (b.detected, b.steps_since_detection) == (
+                    p.detected,
+                    p.steps_since_detection,
+                )
+                np.testing.assert_allclose(b.s, p.s, atol=1e-8, rtol=0)
+                np.testing.assert_allclose(b.target_position, p.target_position, atol=1e-8)
+                np.testing.assert_allclose(b.covariance, p.covariance, atol=1e-8, rtol=0)
+                compared += 1
+        _, _, _, _, infos = env.step({a: rng.uniform(-1, 1, 4) for a in env.agents})
+    assert compared > 100
+    env.close()
