@@ -196,9 +196,9 @@ def _bank_step(
         i = slots[run[k]]
         xr[k] = x[i]
         Pr[k] = P[i]
-    rep = _step_filters(
-        xr, Pr, u[:r], yaw_before[:r], acc_used[:r], seen[:r], yaw_now[:r], z[:r], R[:r], dt,
-        lam, Wm, Wc, Q, camera, x3_bounds, x12_limit, max_std,
+    rep = _step_filters(  # rows [0, r) of the inputs: the running filters
+        xr, Pr, u, yaw_before, acc_used, seen, yaw_now, z, R, dt, lam, Wm, Wc, Q, camera,
+        x3_bounds, x12_limit, max_std,
     )  # fmt: skip
     for k in range(r):  # `TargetEstimator.end_step`
         j = run[k]
