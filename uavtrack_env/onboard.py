@@ -502,11 +502,15 @@ def onboard_team(
     ]
 
 
-def observe_team(agents: Sequence[OnboardAgent], infos: Sequence[dict]) -> None:
-    """`OnboardAgent.observe` for several UAVs of one team, their UKFs in one batched pass."""
+def observe_team(agents: Sequence[OnboardAgent], infos: Sequence[dict], rows: bool = False) -> None:
+    """`OnboardAgent.observe` for several UAVs of one team, their UKFs in one batched pass.
+    ``rows``: build each agent's CBF rows now, while its context is in the CPU's caches (a
+    shield certifies every agent at its next step)."""
     update_trackers([a.tracker for a in agents], infos)
     for agent, info in zip(agents, infos, strict=True):
         agent._take(info)
+        if rows:
+            agent.rows()
 
 
 _CAR_DIAG = math.hypot(*CAR_HALF_EXTENTS[:2].tolist())

@@ -189,4 +189,4 @@ class CBFShield(BaseParallelWrapper):
 
     def _observe(self, infos: dict[str, dict]) -> None:
         """Feed every live agent's onboard stack with its new info (UKFs in one pass)."""
-        observe_team([self.onboard[a] for a in infos], list(infos.values()))
+        observe_team([self.onboard[a] for a in infos], list(infos.values()), rows=True)

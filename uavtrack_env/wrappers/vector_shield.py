@@ -111,7 +111,7 @@ class VectorCBFShield:
             for name, info in self.vector.sensor_infos(k).items():
                 agents.append(self.onboard[k][self._index[name]])
                 infos.append(info)
-        observe_team(agents, infos)
+        observe_team(agents, infos, rows=True)
 
     def _idle(self) -> tuple[list[dict[str, ShieldReport]], np.ndarray, np.ndarray]:
         zeros = np.zeros((self.num_envs, self.n_agents, 4))
