@@ -8,6 +8,7 @@ the closed-loop tests. A policy is ``policy(obs, infos) -> {agent: action}``; if
 from __future__ import annotations
 
 import math
+import sys
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -17,6 +18,7 @@ import numpy as np
 from tqdm import tqdm
 
 from .config import DT
+from .kernels import kernels_cached
 from .metrics import EpisodeRecorder
 
 VIOLATIONS = ("collision", "disconnection", "occlusion")
@@ -60,6 +62,13 @@ def run_episode(
     rec.record(infos)
     tally = _Tally()
     slacks = getattr(policy, "slacks", None)
+    if progress and not kernels_cached():
+        print(
+            "compiling the onboard stack's numba kernels for this machine (once, about a "
+            "minute; cached for later runs) ...",
+            file=sys.stderr,
+            flush=True,
+        )
     wall = time.perf_counter()
     bar = tqdm(range(steps), desc=label, disable=not progress, leave=False)
     for k in bar:

@@ -1,0 +1,33 @@
+"""Whether numba's cache holds the onboard stack's compiled kernels on this machine.
+
+The estimator, the rows and the CBF-QP's arrays are numba kernels compiled with ``cache=True``:
+the first process on a machine compiles them (about a minute here), later ones load them in a
+second or two. `kernels_cached` lets a long-running command say so before it seems to hang.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+from typing import Any
+
+
+def onboard_kernels() -> list[Any]:
+    """The kernels an onboard stack's first step compiles (the shield's and the expert's)."""
+    from .estimation.bank import _bank_step
+    from .onboard import _take_and_believe
+    from .safety.barrier_rows import all_rows
+    from .safety.qp_arrays import nominal_holds, triage
+
+    return [_bank_step, _take_and_believe, all_rows, nominal_holds, triage]
+
+
+def kernels_cached(kernels: Iterable[Any] | None = None) -> bool:
+    """True when numba's cache holds compiled code of every kernel (default: `onboard_kernels`)
+    for their current source; True as well when numba's cache cannot be read (nothing to say)."""
+    for kernel in onboard_kernels() if kernels is None else kernels:
+        try:
+            if not kernel._cache._cache_file._load_index():
+                return False
+        except Exception:  # numba's cache internals differ: do not guess
+            continue
+    return True
