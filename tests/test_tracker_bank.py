@@ -86,7 +86,7 @@ def _assert_same(b, r, atol=1e-8) -> None:
         np.testing.assert_allclose(getattr(b, name), getattr(r, name), atol=atol, rtol=0)
 
 
-@pytest.mark.parametrize("seed", [0, 1])
+@pytest.mark.parametrize("seed", [0, pytest.param(1, marks=pytest.mark.slow)])
 @pytest.mark.parametrize("held", [False, True])
 def test_bank_equals_filterpy_one_uav_at_a_time(seed, held):
     """Four UAVs, 300 steps with truncations and dropouts: the bank's estimates equal plain
