@@ -4,11 +4,12 @@ Setting: n = 3 UAVs, seeded random worlds, uniform random actions in [-1, 1]^4 (
 active on most steps) and small actions (|a| <= 0.05, it almost never is). Pinned to one core with
 single-threaded BLAS. The shield's cost per agent-step is split into
 
-* certify: one agent's certification = rows + CBF-QP (47) (the SafetyContext is built when the
-  agent observes its info, which ``observe`` includes);
+* certify: one agent's certification = the CBF-QP (47) on its rows (the SafetyContext and the
+  rows are built when the agent observes its info, which ``observe`` includes);
 * ukf: the team's UKF step that gives the shield its target estimates (`TrackerBank.step`, one
   compiled call for all agents), per agent-step;
-* observe: the UKF plus the team-mates' messages and the safety context, per agent-step;
+* observe: the UKF plus the team-mates' messages, the safety context and the rows, per
+  agent-step;
 * own: the wrapper's own time per agent-step (its step minus the env's step inside it, i.e.
   the env's action validation and its checked step, both of which a bare ``env.step`` runs):
   the shield's cost, estimator included, amortised over a step of all agents;

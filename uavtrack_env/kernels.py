@@ -10,14 +10,14 @@ from __future__ import annotations
 from collections.abc import Iterable
 from typing import Any
 
+from .estimation.bank import _bank_step
+from .onboard import _take_and_believe
+from .safety.barrier_rows import all_rows
+from .safety.qp_arrays import nominal_holds, triage
+
 
 def onboard_kernels() -> list[Any]:
     """The kernels an onboard stack's first step compiles (the shield's and the expert's)."""
-    from .estimation.bank import _bank_step
-    from .onboard import _take_and_believe
-    from .safety.barrier_rows import all_rows
-    from .safety.qp_arrays import nominal_holds, triage
-
     return [_bank_step, _take_and_believe, all_rows, nominal_holds, triage]
 
 

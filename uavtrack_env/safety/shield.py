@@ -187,9 +187,8 @@ class ShieldReport:
     @property
     def min_hard_h(self) -> float:
         """Smallest barrier value of the hard rows (< 0: the state is already unsafe)."""
-        if self.rows is None or not len(self.rows.h):
-            return math.inf
-        return float(family_lows(self.rows.kind, self.rows.h, _N_KINDS, CONNECT)[_N_KINDS])
+        lows = self._lows()
+        return math.inf if lows is None else lows[-1]
 
     @property
     def min_h_by_family(self) -> dict[str, float]:
@@ -198,10 +197,17 @@ class ShieldReport:
 
     def family_minima(self) -> tuple[dict[str, float], float]:
         """(`min_h_by_family`, `min_hard_h`) in one pass over the rows."""
-        if self.rows is None or not len(self.rows.h):
+        lows = self._lows()
+        if lows is None:
             return {}, math.inf
-        *lows, hard = family_lows(self.rows.kind, self.rows.h, _N_KINDS, CONNECT).tolist()
-        return {name: low for name, low in zip(KIND_NAMES, lows, strict=True) if low == low}, hard
+        *family, hard = lows
+        return {name: low for name, low in zip(KIND_NAMES, family, strict=True) if low == low}, hard
+
+    def _lows(self) -> list[float] | None:
+        """`qp_arrays.family_lows` of the rows (NaN: no such family), None without rows."""
+        if self.rows is None or not len(self.rows.h):
+            return None
+        return family_lows(self.rows.kind, self.rows.h, _N_KINDS, CONNECT).tolist()
 
     @property
     def h(self) -> dict[str, float]:
