@@ -203,9 +203,19 @@ def test_unsafe_state_and_solver_failure_fall_back_without_raising(monkeypatch, 
 
     monkeypatch.setattr("daqp.solve", boom)
     monkeypatch.setattr("qpsolvers.solve_qp", boom)
+    native = f._native
+    f._native = None  # the Python layers: a solver that raises
     out, rep = f.certify(np.array([3.0, 0.0, 0.0, 0.1]), ctx)
     assert rep.status == "fallback" and rep.solver == "brake"
     assert np.array_equal(out, [0.0, 0.0, 0.0, 0.1])  # brake, keep the yaw rate
+    if native is not None:  # the compiled layers: daqp fails every QP (no iterations allowed)
+        params, settings = native
+        settings = settings.copy()
+        settings.view(np.int32)[11] = 0  # DAQPSettings.iter_limit
+        f._native = (params, settings)
+        out, rep = f.certify(np.array([3.0, 0.0, 0.0, 0.1]), ctx)
+        assert rep.status == "fallback" and rep.solver == "brake" and rep.solver_calls == 3
+        assert np.array_equal(out, [0.0, 0.0, 0.0, 0.1])
 
 
 @pytest.mark.parametrize("solver", BACKENDS)

@@ -13,12 +13,13 @@ from typing import Any
 from .estimation.bank import _bank_step
 from .onboard import _take_and_believe
 from .safety.barrier_rows import all_rows
-from .safety.qp_arrays import nominal_holds, triage
+from .safety.qp_arrays import nominal_holds
+from .safety.qp_layers import certify_changed
 
 
 def onboard_kernels() -> list[Any]:
     """The kernels an onboard stack's first step compiles (the shield's and the expert's)."""
-    return [_bank_step, _take_and_believe, all_rows, nominal_holds, triage]
+    return [_bank_step, _take_and_believe, all_rows, nominal_holds, certify_changed]
 
 
 def kernels_cached(kernels: Iterable[Any] | None = None) -> bool:

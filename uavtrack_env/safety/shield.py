@@ -59,6 +59,7 @@ import numpy as np
 import qpsolvers
 
 from uavtrack_env.config import DT, ControlLimits
+from uavtrack_env.safety import daqp_native
 from uavtrack_env.safety.cbf import (
     CONNECT,
     KIND_NAMES,
@@ -80,12 +81,14 @@ from uavtrack_env.safety.qp_arrays import (
     triage,
     with_cut,
 )
+from uavtrack_env.safety.qp_layers import LAYER_STATUS, OUT_HEAD, certify_changed
 from uavtrack_env.validation import Fields as _Fields
 
 SOLVERS = ("daqp", "proxqp", "daqp-direct")
 """QP backends: 'daqp' and 'proxqp' through `qpsolvers.solve_qp`; 'daqp-direct' (the default)
-calls `daqp.solve` without qpsolvers' problem conversions and checks: ~3 us instead of ~9 us per
-solve here (benchmarks/shield_speed.py). All three are tested to give the same answers."""
+calls daqp without qpsolvers' problem conversions and checks: all the QP layers of a call in one
+compiled call to daqp's C entry point (`qp_layers`; `daqp.solve` per QP where that entry point
+is unavailable, `daqp_native.AVAILABLE`). All are tested to give the same answers."""
 
 _PRIMAL_TOL = 1e-10
 """Solver feasibility tolerance (m/s on unit rows). daqp's default 1e-6 lets h creep ~1e-6
@@ -287,6 +290,25 @@ class SafetyFilter:
         opt = self.options
         # per camera axis: ||u - v|| <= accel_bound * lag_tau, the lag plant is never clipped
         self._accel_step = opt.accel_bound * opt.lag_tau / math.sqrt(3.0)
+        self._native: tuple[np.ndarray, np.ndarray] | None = None
+        """`qp_layers.certify_changed`'s params and daqp settings ('daqp-direct' only)."""
+        if solver == "daqp-direct" and daqp_native.AVAILABLE:
+            params = (
+                opt.soft_penalty,
+                opt.hard_penalty,
+                self.alpha_v,
+                opt.slack_regularization,
+                opt.verify_tol,
+                opt.norm_cuts,
+                self.v_max,
+                self.w_max,
+                opt.tol,
+                self._accel_step,
+                max(opt.tol, 1e-7),
+                opt.prune,
+                self._bounds_code,
+            )  # the order of `qp_layers.certify_changed`'s params
+            self._native = (np.array(params), daqp_native.settings(_PRIMAL_TOL))
 
     # ----------------------------------------------------------------- public
     def rows(self, ctx: SafetyContext) -> CBFRows:
@@ -339,6 +361,12 @@ class SafetyFilter:
                 "nominal", False, 0.0, 0.0, [], time_us=(time.perf_counter() - t0) * 1e6,
                 rows=rows, neighbour_ids=ctx.neighbour_ids,
             )  # fmt: skip
+        if self._native is not None:
+            out = certify_changed(
+                u, ctx.yaw, velocity, has_velocity, rows.A, rows.b, rows.kind, self._lb3,
+                self._ub3, *self._native,
+            )  # fmt: skip
+            return out[:4], self._changed_report(out.tolist(), u, rows, ctx, t0)
         stage, v, w, An, bn, (kinds, kept), (lb, ub) = triage(
             u, ctx.yaw, velocity, has_velocity, rows.A, rows.b, rows.kind, self.alpha_v,
             self.v_max, self.w_max, self.options.tol, self._accel_step, self._lb3, self._ub3,
@@ -459,6 +487,41 @@ class SafetyFilter:
         return x if meets(x, G, bu, bl, self.options.verify_tol) else None
 
     # ----------------------------------------------------------------- report
+    def _changed_report(self, out: list, u, rows, ctx, t0) -> ShieldReport:
+        """`_report` from `qp_layers.certify_changed`'s packed output (as a list)."""
+        ids, name = ctx.neighbour_ids, rows.name
+        na, ns, nh = int(out[12]), int(out[13]), int(out[14])
+        j = OUT_HEAD
+        active_rows = [name(int(r), ids) for r in out[j : j + na]]
+        j += na
+        slack_rows = {
+            name(int(r), ids): viol
+            for r, viol in zip(out[j : j + ns], out[j + ns : j + 2 * ns], strict=True)
+        }
+        j += 2 * ns
+        gave_up = [name(int(r), ids) for r in out[j : j + nh]]
+        if out[9]:
+            active_rows.append("speed")
+        if out[10]:
+            active_rows.append("box")
+        if out[3] != u[3]:
+            active_rows.append("yaw_rate")
+        return ShieldReport(
+            status=LAYER_STATUS[int(out[4])],
+            active=True,
+            correction_norm=out[11],
+            slack=out[7],
+            active_rows=active_rows,
+            solver=("closed-form", self.solver, "brake")[int(out[5])],
+            solver_calls=int(out[6]),
+            time_us=(time.perf_counter() - t0) * 1e6,
+            hard_violation=out[8],
+            gave_up=gave_up,
+            slack_per_row=slack_rows,
+            rows=rows,
+            neighbour_ids=ids,
+        )
+
     def _report(self, status, u, u_safe, rows, ctx, t0, solver, calls, An, bn, kinds, kept):
         """Report for a changed action; slack and violations are measured at the returned action."""
         ids = ctx.neighbour_ids
