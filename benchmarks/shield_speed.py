@@ -3,7 +3,8 @@
 Context: 2 neighbours, 10 box obstacles, a moving target; half the calls need a correction
 (the nominal violates a row or a bound), half are safe (fast path, no solver call). Also prints
 the SafetyContext construction time, the row-building time per occluder point of (38), and the
-bare QP solve through qpsolvers vs. daqp called directly (qpsolvers' own overhead).
+bare QP solve through qpsolvers vs. daqp called directly (qpsolvers' own overhead) and vs. daqp's C
+entry point from a numba kernel (`daqp_native.quadprog`, what the shield's compiled layers call).
 
 Then the onboard stack's own path (`SafetyFilter.certify_trusted` with the rows built once, as
 `CBFShield` calls it) on the contexts of a shielded episode (random world, n = 3, random actions):
@@ -166,6 +167,9 @@ def main() -> None:
     lb, ub = -10 * np.ones(3), 10 * np.ones(3)
     import daqp
 
+    from uavtrack_env.safety import daqp_native
+
+    settings = daqp_native.settings(1e-6)  # daqp.solve's default primal_tol
     bu, bl = np.r_[ub, h], np.r_[lb, -1e30 * np.ones(6)]
     sense = np.zeros(9, dtype=np.int32)
 
@@ -176,6 +180,7 @@ def main() -> None:
         ("qpsolvers daqp  ", via_qpsolvers("daqp")),
         ("qpsolvers proxqp", via_qpsolvers("proxqp")),
         ("daqp.solve      ", lambda i: daqp.solve(P, q, G, bu, bl, sense)),
+        ("daqp_quadprog   ", lambda i: daqp_native.quadprog(P, q, G, bu, bl, sense, settings)),
     ):
         fn(0)
         print(f"bare QP {name} median {np.median(timed(fn, 3000)):7.1f} us")
