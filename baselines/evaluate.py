@@ -66,7 +66,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     ap.add_argument(
         "--jit",
         action="store_true",
-        help="JIT-compile the NMPC with gcc (nmpc.jit; ~1.7x faster solves; the first "
+        help="JIT-compile every NMPC solver, the cold-start and rescue Ipopt too (nmpc.jit=True; "
+        "by default only the per-step solver is compiled, when a C compiler is found; the first "
         "build on a machine takes 30-80 s, later ones reuse the cached objects)",
     )
     ap.add_argument("--out", type=Path, default=Path("runs/latest"))

@@ -261,7 +261,7 @@ BAD = [
     case(NMPCConfig, "tol", 0.0, V, rf"tol must be {POS}"),
     case(NMPCConfig, "ipopt_tol", -1e-6, V, rf"ipopt_tol must be {POS}"),
     case(NMPCConfig, "expand", "true", T, r"expand must be True or False"),
-    case(NMPCConfig, "jit", 1, T, r"jit must be True or False"),
+    case(NMPCConfig, "jit", 1, V, r"jit must be None, True or False, got 1 \(int\)"),
     case(NMPCConfig, "rescue_with_ipopt", None, T, r"rescue_with_ipopt must be True or False"),
     case(NMPCConfig, "max_fallback_steps", 2.5, V, rf"max_fallback_steps must be {INT} >= 0"),
     # ------------------------------------------------------------------ CBFConfig

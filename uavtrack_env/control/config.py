@@ -89,17 +89,22 @@ class NMPCConfig:
     default) the shifted multipliers of the plan's safety rows made qrqp cycle between two
     degenerate active sets (146 SQP failures in the first 12 s of C0 with the tuned planner, 12
     with 1e-3; BENCHMARKS.md, NMPC)."""
-    tol: float = 1e-4
-    """Primal and dual stopping tolerance of 'sqp'. 1e-4 stops after ~3 iterations instead of
-    ~5 at 1e-6 and moves u_k by < 2e-5 in the benchmark loop (BENCHMARKS.md, NMPC)."""
+    tol: float = 3e-3
+    """Primal and dual stopping tolerance of 'sqp'. 3e-3 stops after ~2.2 iterations (~3.6 at
+    1e-4) with u_k within 1e-3 of Ipopt's (tol 1e-6) in the benchmark loop (BENCHMARKS.md, NMPC)."""
     ipopt_tol: float = 1e-6
     """Stopping tolerance of 'ipopt' (the paper's solver, and the cold starts and rescues)."""
     expand: bool = True
     """Expand the MX graph to SX (faster evaluation)."""
-    jit: bool = False
-    """JIT-compile the NLP functions with the system C compiler (``$CC`` or gcc): ~1.7x faster
-    SQP solves. The first build on a machine compiles for 30-80 s; later processes with the same
-    settings reuse the objects from `jit_cache` (~3 s). See BENCHMARKS.md."""
+    jit: bool | None = None
+    """JIT-compile the NLP's functions with the system C compiler (``$CC``, else gcc or cc) and
+    keep the objects in `jit_cache`, so later processes with the same settings load them.
+    None (default): compile the per-step solver's functions (sqp, rti or the warm Ipopt; about 20 s
+    once per machine and settings, announced on stderr) when a compiler is found and
+    ``$UAVTRACK_JIT`` is not ``0``, else run them interpreted; cold starts and rescues stay
+    interpreted. True: compile every solver, the cold-start Ipopt too (30-80 s once; needs the
+    compiler). False: interpreted. Compiled and interpreted solves agree to 1e-9. See
+    BENCHMARKS.md, NMPC."""
     rescue_with_ipopt: bool = True
     """If 'sqp'/'rti' fails, re-solve the same problem with Ipopt before falling back."""
     max_fallback_steps: int = 10
@@ -127,8 +132,9 @@ class NMPCConfig:
         f.number("qrqp_min_lam", lo=0)
         f.number("tol", lo=0, lo_open=True)
         f.number("ipopt_tol", lo=0, lo_open=True)
-        for name in ("expand", "jit", "rescue_with_ipopt"):
+        for name in ("expand", "rescue_with_ipopt"):
             f.flag(name)
+        f.choice("jit", (None, True, False))
         f.integer("max_fallback_steps", lo=0)
         _require(
             self.terminal_weight != "lqr" or min(self.r_u) > 0,

@@ -28,6 +28,7 @@ import shutil
 import sys
 import tempfile
 import time
+import warnings
 from dataclasses import dataclass, field, replace
 
 import casadi as ca
@@ -251,11 +252,23 @@ class NMPC:
 
         nlp = {"x": w, "p": p, "f": cost, "g": g}
         self._nlp = nlp
-        if self.cfg.jit:
-            with _jit_build_dir() as build:
-                self._make_solvers(nlp, _jit_options(build))
-        else:
-            self._make_solvers(nlp, {})
+        if self.cfg.jit is False or (self.cfg.jit is None and not jit_cache.auto_enabled()):
+            self._make_solvers(nlp, {}, {})
+            return
+        with _jit_build_dir() as build:
+            jit = _jit_options(build)
+            if self.cfg.jit:
+                self._make_solvers(nlp, jit, jit)
+                return
+            try:
+                self._make_solvers(nlp, {}, jit)
+            except RuntimeError as err:  # a compiler that fails: run interpreted
+                warnings.warn(
+                    f"NMPC: compiling the solver failed, running it interpreted ({err})",
+                    RuntimeWarning,
+                    stacklevel=2,
+                )
+                self._make_solvers(nlp, {}, {})
 
     def _layout(self) -> int:
         """Index the decision vector; returns its length.
@@ -378,10 +391,11 @@ class NMPC:
             shift_g[row0 + nr * n : row0 + nr * (n + 1)] = np.arange(m, m + nr)
         return shift_w, shift_g
 
-    def _make_solvers(self, nlp: dict, jit: dict) -> None:
-        """The Ipopt solver of cold starts and rescues, and the configured solver."""
+    def _make_solvers(self, nlp: dict, cold_jit: dict, jit: dict) -> None:
+        """The Ipopt solver of cold starts and rescues, and the configured solver; ``cold_jit``
+        and ``jit``: their JIT options (`_jit_options`, or empty for interpreted)."""
         cfg = self.cfg
-        common: dict = {"print_time": False, "expand": cfg.expand, "error_on_fail": False, **jit}
+        common: dict = {"print_time": False, "expand": cfg.expand, "error_on_fail": False}
         solver = self.cfg.solver
         ipopt_opts = {
             **common,
@@ -392,7 +406,9 @@ class NMPC:
         }
         # Cold starts (first step, after a hover fallback) go to Ipopt: an active-set QP
         # from a poor guess can take hundreds of ms, the interior point ~10 ms.
-        self._cold_nlpsol = ca.nlpsol("nmpc_cold", "ipopt", nlp, {**ipopt_opts, "jit_name": "cold"})
+        self._cold_nlpsol = ca.nlpsol(
+            "nmpc_cold", "ipopt", nlp, {**ipopt_opts, **cold_jit, "jit_name": "cold"}
+        )
         if solver == "ipopt":
             plug = "ipopt"
             sopts = {**ipopt_opts, "ipopt.warm_start_init_point": "yes", "ipopt.mu_init": 1e-3}
@@ -413,7 +429,7 @@ class NMPC:
                 sopts["hess_lag"] = self._gauss_newton_hessian(nlp)
             else:
                 sopts["convexify_strategy"] = "regularize"
-        self._nlpsol = ca.nlpsol("nmpc", plug, nlp, {**sopts, "jit_name": "nmpc"})
+        self._nlpsol = ca.nlpsol("nmpc", plug, nlp, {**sopts, **jit, "jit_name": "nmpc"})
         self._solver_plugin = plug
 
     def _lqr_weight(self) -> np.ndarray:
