@@ -89,6 +89,11 @@ class NMPCConfig:
     default) the shifted multipliers of the plan's safety rows made qrqp cycle between two
     degenerate active sets (146 SQP failures in the first 12 s of C0 with the tuned planner, 12
     with 1e-3; BENCHMARKS.md, NMPC)."""
+    qrqp_max_iter: int = 20
+    """qrqp's active-set iterations per QP. The SQP judges convergence on the NLP (`tol`), so a
+    QP stopped at the cap only shortens a step, not the solution's accuracy; at 200 the ~3 % of
+    C0's solves whose QPs change the active set 40-200 times took 30-390 ms, a third of the
+    NMPC's time there (BENCHMARKS.md, NMPC)."""
     tol: float = 3e-3
     """Primal and dual stopping tolerance of 'sqp'. 3e-3 stops after ~2.2 iterations (~3.6 at
     1e-4) with u_k within 1e-3 of Ipopt's (tol 1e-6) in the benchmark loop (BENCHMARKS.md, NMPC)."""
@@ -130,6 +135,7 @@ class NMPCConfig:
         f.choice("hessian", ("gauss-newton", "exact"))
         f.text("qpsol")  # any CasADi conic plugin name; CasADi reports unknown ones
         f.number("qrqp_min_lam", lo=0)
+        f.integer("qrqp_max_iter", lo=1)
         f.number("tol", lo=0, lo_open=True)
         f.number("ipopt_tol", lo=0, lo_open=True)
         for name in ("expand", "rescue_with_ipopt"):

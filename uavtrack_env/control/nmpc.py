@@ -423,7 +423,7 @@ class NMPC:
                 "tol_pr": cfg.tol,
                 "tol_du": cfg.tol,
                 "max_iter": 1 if solver == "rti" else cfg.max_iter,
-                "qpsol_options": self._qp_options(cfg.qpsol, cfg.qrqp_min_lam),
+                "qpsol_options": self._qp_options(cfg),
             }
             if cfg.hessian == "gauss-newton":
                 sopts["hess_lag"] = self._gauss_newton_hessian(nlp)
@@ -445,11 +445,12 @@ class NMPC:
         return 0.5 * (P + P.T)
 
     @staticmethod
-    def _qp_options(qpsol: str, min_lam: float) -> dict:
+    def _qp_options(cfg: NMPCConfig) -> dict:
+        qpsol = cfg.qpsol
         base: dict = {"error_on_fail": False}
         if qpsol == "qrqp":
-            base.update(print_iter=False, print_header=False, print_info=False, max_iter=200)
-            base["min_lam"] = min_lam
+            base.update(print_iter=False, print_header=False, print_info=False)
+            base.update(max_iter=cfg.qrqp_max_iter, min_lam=cfg.qrqp_min_lam)
         elif qpsol in ("osqp", "proxqp", "daqp", "hpipm", "qpoases"):
             base["print_time"] = False
             if qpsol == "qpoases":
