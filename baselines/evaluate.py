@@ -21,7 +21,6 @@ import argparse
 import json
 import math
 import multiprocessing
-import os
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
 from typing import Any
@@ -30,7 +29,7 @@ from tqdm import tqdm
 
 from uavtrack_env import uavtrack_v0
 from uavtrack_env.config import DT, DetectorConfig
-from uavtrack_env.expert import ExpertPolicy
+from uavtrack_env.expert import ExpertPolicy, usable_cpus
 from uavtrack_env.policies import HoverPolicy, RandomPolicy, VisualServoPolicy
 from uavtrack_env.presets import (
     ExpertConfig,
@@ -86,18 +85,22 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         help="processes for --all's six rows (default: the CPUs this process may use, at most "
         "6); the results do not depend on it, the timings do",
     )
+    ap.add_argument(
+        "--threads",
+        type=int,
+        default=None,
+        help="UAVs the expert plans at once, their NMPC solves in parallel (default: one per UAV, "
+        "at most the CPUs per process); the results do not depend on it, the timings do",
+    )
     args = ap.parse_args(argv)
     if not (math.isfinite(args.duration) and args.duration > 0):
         ap.error(f"--duration must be a positive number of seconds, got {args.duration}")
     if args.workers is None:
-        args.workers = min(
-            6,
-            len(os.sched_getaffinity(0))
-            if hasattr(os, "sched_getaffinity")
-            else os.cpu_count() or 1,
-        )
+        args.workers = min(6, usable_cpus())
     elif args.workers < 1:
         ap.error(f"--workers must be an integer >= 1, got {args.workers}")
+    if args.threads is not None and args.threads < 1:
+        ap.error(f"--threads must be an integer >= 1, got {args.threads}")
     return args
 
 
@@ -136,10 +139,11 @@ def expert_settings(preset: str, assignments: list[str], no_cbf: bool, jit: bool
     return expert_config(cfg, **extra)
 
 
-def make_policy(name: str, env: Any, expert: ExpertConfig) -> Policy:
-    """The policy ``name`` (one of `POLICIES`) for ``env``'s agents."""
+def make_policy(name: str, env: Any, expert: ExpertConfig, threads: int | None = None) -> Policy:
+    """The policy ``name`` (one of `POLICIES`) for ``env``'s agents (``threads``: the expert's,
+    `ExpertPolicy`)."""
     if name == "expert":
-        return ExpertPolicy(env.possible_agents, env.unwrapped.config, expert)
+        return ExpertPolicy(env.possible_agents, env.unwrapped.config, expert, threads)
     base = {"servo": VisualServoPolicy, "hover": HoverPolicy, "random": RandomPolicy}[name]()
     return lambda obs, infos: {a: base(a, obs[a]) for a in obs}
 
@@ -160,6 +164,7 @@ def evaluate_world(
     video: bool = False,
     progress: bool = False,
     command: str | None = None,
+    threads: int | None = None,
 ) -> dict:
     """One episode; writes config.json, metrics.json, table.md, frame.png and figures to ``out``
     (and with ``video``, the episode as ``out/video-episode-0.mp4``: `RecordVideo`)."""
@@ -171,7 +176,7 @@ def evaluate_world(
     )
     if video:
         env = RecordVideo(env, out, name_prefix="video")
-    agent = make_policy(policy, env, expert)
+    agent = make_policy(policy, env, expert, threads)
     label = f"{scenario}{init}" if scenario != "random" else f"seed {seed}"
     result = run_episode(
         env,
@@ -218,9 +223,13 @@ def evaluate_rows(
             evaluate_world(s, i, out / f"{s}{i}", **common)
             for s, i in tqdm(rows, desc="Table VI", disable=not progress)
         ]
-    quiet = {**common, "progress": False}  # one bar for the rows, not one per episode
+    procs = min(workers, len(rows))
+    # one bar for the rows, not one per episode; the processes share the CPUs
+    quiet = {**common, "progress": False}
+    if quiet.get("threads") is None:
+        quiet["threads"] = max(1, usable_cpus() // procs)
     spawn = multiprocessing.get_context("spawn")  # no PyBullet or solver state is inherited
-    with ProcessPoolExecutor(min(workers, len(rows)), mp_context=spawn) as pool:
+    with ProcessPoolExecutor(procs, mp_context=spawn) as pool:
         futures = [pool.submit(evaluate_world, s, i, out / f"{s}{i}", **quiet) for s, i in rows]
         for _ in tqdm(
             as_completed(futures), total=len(rows), desc="Table VI", disable=not progress
@@ -281,6 +290,7 @@ def main(argv: list[str] | None = None) -> None:
         "video": args.video,
         "progress": not args.no_progress,
         "command": cli_command("baselines.evaluate", argv),
+        "threads": args.threads,
     }
     if args.all:
         rows = [(s, i) for s in ("A", "B", "C") for i in (0, 1)]

@@ -1,7 +1,7 @@
 """Median time of each expert stage and of the whole 3-UAV expert step, scenario A.
 
     python benchmarks/expert_speed.py [--steps 800] [--presets tuned paper] [--solvers sqp ipopt]
-        [--jit] [--interpreted]
+        [--jit] [--interpreted] [--threads 1 3]
 
 Runs the closed loop in `baselines.evaluate`'s world (lag dynamics, detector noise on) and prints
 per-UAV medians of the UKF, NMPC and CBF-QP, the whole expert step for 3 UAVs, the env step, and
@@ -9,7 +9,8 @@ the real-time factor at 80 Hz of expert alone and of expert + env (from the medi
 wall time of the whole episode after its first step), for each preset
 (`uavtrack_env.presets.PRESETS`) and NMPC solver. Rows: the default (`NMPCConfig.jit` None: the
 per-step solver compiled when a C compiler is found), ``+jit`` (every solver compiled) and
-``+interp`` (nothing compiled).
+``+interp`` (nothing compiled); ``tN``: the expert's planning threads (`ExpertPolicy`; default
+one per UAV, at most the CPUs).
 """
 
 from __future__ import annotations
@@ -22,15 +23,17 @@ import time
 from baselines import evaluate
 from uavtrack_env import uavtrack_v0
 from uavtrack_env.config import DT
-from uavtrack_env.expert import ExpertPolicy
+from uavtrack_env.expert import ExpertPolicy, default_threads, usable_cpus
 from uavtrack_env.presets import PRESETS, expert_config
 
 
-def run(preset: str, solver: str, steps: int, jit: bool | None = None) -> dict[str, float]:
+def run(
+    preset: str, solver: str, steps: int, jit: bool | None = None, threads: int | None = None
+) -> dict[str, float]:
     env = uavtrack_v0.parallel_env(**evaluate.world_kwargs("A", 0, steps, render=False))
     obs, infos = env.reset(seed=0)
     config = expert_config(preset, nmpc={"solver": solver, "jit": jit})
-    expert = ExpertPolicy.from_env(env, config)
+    expert = ExpertPolicy.from_env(env, config, threads)
     whole, env_t = [], []
     start = None
     while env.agents:
@@ -43,6 +46,7 @@ def run(preset: str, solver: str, steps: int, jit: bool | None = None) -> dict[s
         whole.append(t1 - t0)
         env_t.append(time.perf_counter() - t1)
     env.close()
+    expert.close()
     med = {k: 1e3 * statistics.median(v) for k, v in expert.timings.items()}
     med["expert_step_3uav"] = 1e3 * statistics.median(whole)
     med["env_step"] = 1e3 * statistics.median(env_t)
@@ -61,17 +65,29 @@ def main() -> None:
     ap.add_argument(
         "--interpreted", action="store_true", help="also each solver with nmpc.jit=False"
     )
+    ap.add_argument(
+        "--threads",
+        type=int,
+        nargs="+",
+        default=[None],
+        help="the expert's planning threads, one row each (default: one per UAV, at most the CPUs)",
+    )
     args = ap.parse_args()
-    print(f"machine: {platform.machine()}, python {platform.python_version()}, {args.steps} steps")
+    print(
+        f"machine: {platform.machine()}, python {platform.python_version()}, {args.steps} steps, "
+        f"{usable_cpus()} CPUs, default threads {default_threads(3)}"
+    )
     period = 1e3 / 80.0
     rows = {}
     for p in args.presets:
         for s in args.solvers:
-            rows[f"{p}/{s}"] = run(p, s, args.steps)
-            if args.jit:
-                rows[f"{p}/{s}+jit"] = run(p, s, args.steps, jit=True)
-            if args.interpreted:
-                rows[f"{p}/{s}+interp"] = run(p, s, args.steps, jit=False)
+            for t in args.threads:
+                name = f"{p}/{s}" + (f" t{t}" if t else "")
+                rows[name] = run(p, s, args.steps, threads=t)
+                if args.jit:
+                    rows[f"{name}+jit"] = run(p, s, args.steps, jit=True, threads=t)
+                if args.interpreted:
+                    rows[f"{name}+interp"] = run(p, s, args.steps, jit=False, threads=t)
     cols = ["ukf", "nmpc", "qp", "expert_step_3uav", "env_step"]
     print(
         f"{'preset/solver':>16} " + " ".join(f"{c:>17}" for c in cols) + f" {'RT x (expert)':>14}"

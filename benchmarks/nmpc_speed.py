@@ -41,14 +41,17 @@ def _plant(s: np.ndarray, u: np.ndarray, vq: np.ndarray, sub: int = 4) -> np.nda
     return s
 
 
-def run(preset: str, solver: str, steps: int, **overrides) -> dict:
-    """Closed loop from each start (``overrides``: `NMPCConfig` fields); returns per-solve times,
-    iterations, failures and the largest |du| against Ipopt."""
+def run(preset: str, solver: str, steps: int, patch=None, **overrides) -> dict:
+    """Closed loop from each start (``overrides``: `NMPCConfig` fields; ``patch(ctrl)``: swaps
+    the built controller's per-step solver, for routes outside `NMPCConfig`); returns per-solve
+    times, iterations, failures and the largest |du| against Ipopt."""
     cfg = PRESETS[preset].nmpc
     rows = ROWS if cfg.safety_rows else None
     nmpc_module._BUILT.clear()  # time a full build, not the shared one
     t0 = time.perf_counter()
     ctrl = NMPC(REF, cfg, solver=solver, error_signal=False, **overrides)
+    if patch is not None:
+        patch(ctrl)
     build = time.perf_counter() - t0
     ipopt = NMPC(REF, cfg, solver="ipopt", error_signal=False, jit=False)
     times, iters, cold, fails, rescues, du = [], [], [], 0, 0, [0.0]

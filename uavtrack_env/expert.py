@@ -7,8 +7,10 @@ positions its neighbours sent, the known obstacle map and its reference; never `
 
 from __future__ import annotations
 
+import os
 import time
 from collections import defaultdict
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -43,6 +45,12 @@ class ExpertPolicy:
     ``"tuned"``). Call `reset` with the env's layout after every env reset (`from_env` does the
     first). Actions are the env's normalised [-1, 1]^4. ``timings[stage]`` holds per-agent-step
     wall times (s) of 'ukf', 'nmpc' (with the viewpoint layer) and 'qp' (rows and QP).
+
+    ``threads``: UAVs planned at once, as each UAV plans on its own computer in the paper's
+    distributed scheme: their NMPC solves run in parallel (CasADi releases the GIL), the Python
+    parts in turn. None: one per UAV, at most the CPUs this process may use (`default_threads`);
+    1: one after the other. The actions do not depend on it; with more than one thread the stage
+    timings include waiting for the other UAVs' Python work.
     """
 
     def __init__(
@@ -50,7 +58,15 @@ class ExpertPolicy:
         agents: list[str],
         env_config: EnvConfig,
         config: ExpertConfig | str | None = None,
+        threads: int | None = None,
     ) -> None:
+        if threads is None:
+            threads = default_threads(len(agents))
+        elif isinstance(threads, bool) or not isinstance(threads, int) or threads < 1:
+            raise ValueError(f"threads must be an integer >= 1 or None, got {threads!r}")
+        self.threads = threads
+        self._pool: ThreadPoolExecutor | None = None
+        self._pool_pid = 0
         self.config = cfg = expert_config(config)
         self.env_config = env_config
         self.scale = env_config.limits.scale
@@ -67,12 +83,14 @@ class ExpertPolicy:
         return self.config.use_cbf
 
     @classmethod
-    def from_env(cls, env, config: ExpertConfig | str | None = None) -> ExpertPolicy:
+    def from_env(
+        cls, env, config: ExpertConfig | str | None = None, threads: int | None = None
+    ) -> ExpertPolicy:
         """Build for a reset env: its agents, world and layout."""
         layout = getattr(env, "layout", None)
         if layout is None:
             raise RuntimeError("ExpertPolicy.from_env needs an env that has been reset")
-        expert = cls(env.possible_agents, env.config, config)
+        expert = cls(env.possible_agents, env.config, config, threads)
         expert.reset(layout)
         return expert
 
@@ -105,7 +123,21 @@ class ExpertPolicy:
         t0 = time.perf_counter()
         observe_team([self.onboard[a] for a in obs], [infos[a] for a in obs])
         self._ukf_time = (time.perf_counter() - t0) / max(len(obs), 1)
-        return {agent: self._plan(agent, infos[agent]) for agent in obs}
+        agents = list(obs)
+        if self.threads == 1 or len(agents) == 1:
+            plans = [self._plan(agent, infos[agent]) for agent in agents]
+        else:
+            if self._pool is None or self._pool_pid != os.getpid():  # none yet, or forked
+                self._pool = ThreadPoolExecutor(self.threads, thread_name_prefix="uavtrack-plan")
+                self._pool_pid = os.getpid()
+            plans = list(self._pool.map(lambda agent: self._plan(agent, infos[agent]), agents))
+        return {agent: self._record(plan) for agent, plan in zip(agents, plans, strict=True)}
+
+    def close(self) -> None:
+        """Stop the planning threads (a later call starts them again)."""
+        if self._pool is not None:
+            self._pool.shutdown()
+            self._pool = None
 
     def act(self, agent: str, info: dict) -> np.ndarray:
         """One UAV's action from its own info (measurement, own state, messages)."""
@@ -114,14 +146,24 @@ class ExpertPolicy:
         t0 = time.perf_counter()
         self.onboard[agent].observe(info)
         self._ukf_time = time.perf_counter() - t0
-        return self._plan(agent, info)
+        return self._record(self._plan(agent, info))
 
-    def _plan(self, agent: str, info: dict) -> np.ndarray:
-        """The agent's action from its observed stack: viewpoint, NMPC, CBF-QP."""
+    def _record(self, plan: tuple[np.ndarray, tuple[float, float] | None]) -> np.ndarray:
+        """Keep a plan's stage times (in the caller's thread, in the agents' order); its action."""
+        action, times = plan
+        if times is not None:
+            self.timings["ukf"].append(self._ukf_time)
+            self.timings["nmpc"].append(times[0])
+            self.timings["qp"].append(times[1])
+        return action
+
+    def _plan(self, agent: str, info: dict) -> tuple[np.ndarray, tuple[float, float] | None]:
+        """The agent's action from its observed stack (viewpoint, NMPC, CBF-QP) and the times
+        (s) of its 'nmpc' and 'qp' stages (None when it hovers: nothing seen yet)."""
         onboard, st = self.onboard[agent], self.planners[agent]
         est = onboard.estimate
         if est is None:
-            return np.zeros(4, np.float32)  # nothing seen yet: hover
+            return np.zeros(4, np.float32), None  # nothing seen yet: hover
         yaw = info["own"]["yaw"]
         t1 = time.perf_counter()
         use_cbf = self.config.use_cbf
@@ -142,11 +184,9 @@ class ExpertPolicy:
         if use_cbf:
             u, st.last_report = onboard.certify(u)
         t4 = time.perf_counter()
-        self.timings["ukf"].append(self._ukf_time)
-        self.timings["nmpc"].append(t3 - t2)
-        self.timings["qp"].append(t2 - t1 + t4 - t3)
         st.last_u = np.asarray(u, float)
-        return np.clip(st.last_u / self.scale, -1.0, 1.0).astype(np.float32)
+        action = np.clip(st.last_u / self.scale, -1.0, 1.0).astype(np.float32)
+        return action, (t3 - t2, t2 - t1 + t4 - t3)
 
     def slacks(self) -> dict[str, float]:
         """The QP slack of each agent's last step (0 without a report)."""
@@ -154,3 +194,15 @@ class ExpertPolicy:
             a: (st.last_report.slack if st.last_report is not None else 0.0)
             for a, st in self.planners.items()
         }
+
+
+def usable_cpus() -> int:
+    """The CPUs this process may run on."""
+    if hasattr(os, "sched_getaffinity"):
+        return len(os.sched_getaffinity(0))
+    return os.cpu_count() or 1
+
+
+def default_threads(n_agents: int) -> int:
+    """Planning threads for a team of ``n_agents``: one per UAV, at most `usable_cpus`."""
+    return max(1, min(n_agents, usable_cpus()))
