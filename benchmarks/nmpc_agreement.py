@@ -76,7 +76,7 @@ def main() -> None:
     world = evaluate.world_kwargs(args.scenario, 0, args.steps, render=False)
     env = uavtrack_v0.parallel_env(**world)
     obs, infos = env.reset(seed=0)
-    expert = ExpertPolicy.from_env(env, config)
+    expert = ExpertPolicy.from_env(env, config, threads=1)  # the checks in a fixed order
     regular, slow, times = [], [], []
     for st in expert.planners.values():
         st.nmpc.solve = _checked(st.nmpc, args.every, regular, slow, times)

@@ -49,6 +49,7 @@ def collect(
                 obs_rows.append(obs[agent])
                 act_rows.append(a)
             obs, _, _, _, infos = env.step(actions)
+        expert.close()
         env.close()
         bar.update()
     bar.close()
