@@ -303,7 +303,8 @@ def main(argv: list[str] | None = None) -> None:
         m = evaluate_world(args.scenario, args.init, args.out, **common)
         md = table([m], paper=args.scenario != "random")
         print(
-            f"real time x{m['real_time_factor']:.2f}; timing (ms, median per UAV-step): "
+            f"real time x{m['real_time_factor']:.2f} after a {m['startup_s']:.1f} s first step; "
+            "timing (ms, median per UAV-step): "
             + ", ".join(f"{k} {v:.3f}" for k, v in m["timing_ms"].items())
         )
     print(md)

@@ -31,7 +31,7 @@ def test_evaluate_cli_writes_valid_metrics(tmp_path):
     assert cfg["command"].startswith("python -m ") and "--scenario A" in cfg["command"]
     assert cfg["commit"] and "casadi" in cfg["versions"]
     assert json.loads((out / "config.json").read_text()) == cfg
-    assert m["real_time_factor"] > 0
+    assert m["real_time_factor"] > 0 and m["startup_s"] > 0
     assert m["duration_s"] == pytest.approx(1.0)
     assert set(m["uavs"]) == {"uav_0", "uav_1", "uav_2"}
     for r in m["uavs"].values():

@@ -1,6 +1,9 @@
-"""The expert's planning threads: the same actions as one thread, clear errors for bad counts."""
+"""The expert's planning threads (the same actions as one thread, clear errors for bad counts)
+and the runner's real-time factor."""
 
 from __future__ import annotations
+
+import math
 
 import numpy as np
 import pytest
@@ -8,6 +11,7 @@ import pytest
 from baselines import evaluate
 from uavtrack_env import uavtrack_v0
 from uavtrack_env.expert import ExpertPolicy, default_threads
+from uavtrack_env.runner import run_episode
 
 
 def test_threaded_expert_equals_sequential_expert_bit_for_bit():
@@ -55,3 +59,19 @@ def test_evaluate_rejects_bad_threads(capsys):
     with pytest.raises(SystemExit):
         evaluate.parse_args(["--threads", "0"])
     assert "--threads must be an integer >= 1, got 0" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("steps", [1, 3])
+def test_real_time_factor_leaves_out_the_first_step(steps):
+    """The first step (one-off builds, the cold solve) is `startup_s`, apart from the rate."""
+    env = uavtrack_v0.parallel_env(scenario="A", max_cycles=steps)
+    policy = ExpertPolicy(env.possible_agents, env.config, threads=1)
+    try:
+        m = run_episode(env, policy, seed=0, steps=steps).metrics
+    finally:
+        env.close()
+    assert m["startup_s"] > 0
+    if steps == 1:
+        assert math.isnan(m["real_time_factor"])
+    else:
+        assert math.isfinite(m["real_time_factor"]) and m["real_time_factor"] > 0
