@@ -72,7 +72,7 @@ def run_episode(
             flush=True,
         )
     start = time.perf_counter()
-    after_first = start  # wall clock after the first step, which holds the one-off builds
+    after_first = None  # wall clock after the first step, which holds the one-off builds
     bar = tqdm(range(steps), desc=label, disable=not progress, leave=False)
     for k in bar:
         if not env.agents:
@@ -93,6 +93,7 @@ def run_episode(
             on_step(infos)
         tally.add(infos, _shield_flags(infos, policy))
     end = time.perf_counter()
+    after_first = end if after_first is None else after_first
     wall = end - after_first
     n = raw.config.n_uavs
     timing = {"env": _median_ms(tally.env_time) / n, "policy": _median_ms(tally.policy_time) / n}
@@ -106,7 +107,7 @@ def run_episode(
         "uavs": rec.summary(),
         "timing_ms": timing,
         "real_time_factor": (rec.steps - 2) * DT / wall if rec.steps > 2 and wall > 0 else math.nan,
-        "startup_s": (after_first if rec.steps > 2 else end) - start,
+        "startup_s": after_first - start,
         "initial_conditions": {
             a: [*map(float, raw.layout.uav_positions[i][:2]), float(raw.layout.uav_yaws[i])]
             for i, a in enumerate(raw.possible_agents)
