@@ -197,6 +197,7 @@ BAD = [
     case(EnvConfig, "n_neighbours", 2.5, V, rf"n_neighbours must be {INT} >= 0, got 2\.5"),
     case(EnvConfig, "n_obstacles_obs", -1, V, rf"n_obstacles_obs must be {INT} >= 0"),
     case(EnvConfig, "uav_radius", INF, V, rf"uav_radius must be {POS}"),
+    case(EnvConfig, "skip_proven_queries", "yes", T, r"skip_proven_queries must be True or False"),
     case(EnvConfig, "camera", {"fx": 1.0}, T, r"camera must be a CameraConfig, got \{"),
     case(EnvConfig, "limits", CameraConfig(), T, r"limits must be a ControlLimits"),
     case(EnvConfig, "violations", 2.0, T, r"violations must be a ViolationConfig"),

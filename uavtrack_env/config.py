@@ -265,6 +265,10 @@ class EnvConfig:
     """K nearest obstacles in the observation."""
     uav_radius: float = 0.25
     """Collision sphere radius of a UAV body (m)."""
+    skip_proven_queries: bool = True
+    """Skip the PyBullet ray casts and contact queries whose answer the geometry proves (a ray
+    to the car with nothing near its path, a UAV far from everything;
+    `uavtrack_env.broadphase`); the results equal PyBullet's. False sends every query."""
     camera: CameraConfig = field(default_factory=CameraConfig)
     limits: ControlLimits = field(default_factory=ControlLimits)
     violations: ViolationConfig = field(default_factory=ViolationConfig)
@@ -290,6 +294,7 @@ class EnvConfig:
         f.integer("n_neighbours", lo=0)
         f.integer("n_obstacles_obs", lo=0)
         f.number("uav_radius", lo=0, lo_open=True)
+        f.flag("skip_proven_queries")
         for name, kind in _NESTED_TYPES.items():
             f.instance(name, kind)
         rays = self.n_uavs * int(np.prod(self.detector.samples_per_axis))

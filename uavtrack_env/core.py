@@ -15,6 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .broadphase import contacts_in_doubt
 from .config import DT, EnvConfig
 from .dynamics import integrate
 from .geometry import occlusion_angle, point_box_distance, world_to_cam_vec
@@ -153,7 +154,7 @@ def simulate(
     position, yaw, velocity, yaw_rate = integrate(*state, u, cfg.dynamics, DT)
     for k, (world, target) in enumerate(zip(worlds, targets, strict=True)):
         target.step(DT)
-        world.set_poses(position[k], yaw[k], alive[k], target.center(), target.heading)
+        world.set_poses(position[k], yaw[k], alive[k], target.center(), target.heading, defer=True)
     return (position, yaw, velocity, yaw_rate), u
 
 
@@ -176,18 +177,32 @@ def sense(
     for k, target in enumerate(targets):
         centers[k] = target.center()
     headings = np.array([t.heading for t in targets], float)
-    det = detector.detect_batch(list(worlds), position, yaw, centers, headings, headings, rngs)
+    clearance = _box_distance(position, obstacles) - cfg.uav_radius
+    target_clearance = _target_clearance(position, centers, headings) - cfg.uav_radius
+    cast = touch = None
+    if cfg.skip_proven_queries:
+        cast = detector.rays_in_doubt(
+            position, alive, centers, headings, obstacles.centers, obstacles.half_extents,
+            cfg.uav_radius,
+        )  # fmt: skip
+        touch = contacts_in_doubt(
+            clearance, target_clearance, position[..., 2], cfg.uav_radius, alive
+        )
+    det = detector.detect_batch(
+        list(worlds), position, yaw, centers, headings, headings, rngs, cast=cast
+    )
     pair = np.linalg.norm(position[:, :, None] - position[:, None], axis=-1)
     received = receive_batch(pair, alive, cfg.comms, list(rngs))
-    hits = {key: np.empty((K, n), bool) for key in ("ground", "obstacle", "target")}
+    hits = {key: np.zeros((K, n), bool) for key in ("ground", "obstacle", "target")}
     for k, world in enumerate(worlds):
+        if touch is not None and not touch[k]:
+            continue  # no UAV near anything: PyBullet would report no contact
         for key, hit in world.contacts(n).items():
             hits[key][k] = hit
 
     both = alive[:, :, None] & alive[:, None, :]
     both.reshape(K, n * n)[:, :: n + 1] = False  # the diagonals
     dist = np.where(both, pair, np.inf)
-    clearance = _box_distance(position, obstacles) - cfg.uav_radius
     theta, in_noi = _occlusion(position, centers, obstacles)
     M = clearance.shape[-1]
     return Measurements(
@@ -200,7 +215,7 @@ def sense(
         nearest_obstacle=clearance.min(axis=-1) if M else np.full((K, n), np.inf),
         target_center=centers,
         target_heading=headings,
-        target_clearance=_target_clearance(position, centers, headings) - cfg.uav_radius,
+        target_clearance=target_clearance,
         occlusion_angles=theta,
         occlusion_candidates=in_noi,
     )

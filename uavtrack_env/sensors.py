@@ -14,6 +14,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from . import broadphase
 from .config import CameraConfig, CommsConfig, DetectorConfig
 from .geometry import relative_angle, wrap_angle
 from .target import CAR_HALF_EXTENTS
@@ -137,6 +138,24 @@ class Detector:
         # One transform for all points: the centre, the ray-cast samples, the 8 box corners.
         self._local = np.vstack([np.zeros((1, 3)), samples, _CORNER_SIGNS * CAR_HALF_EXTENTS])
 
+    def rays_in_doubt(
+        self,
+        positions: np.ndarray,
+        alive: np.ndarray,
+        target_centers: np.ndarray,
+        target_yaws: np.ndarray,
+        box_centres: np.ndarray,
+        box_half_extents: np.ndarray,
+        uav_radius: float,
+    ) -> np.ndarray:
+        """(K, n, s) bool: the rays to the car's samples that must be cast; the others reach
+        their sample (`uavtrack_env.broadphase.rays_in_doubt`)."""
+        samples = _to_world(self._local[1 : 1 + self._n_samples], target_centers, target_yaws)
+        return broadphase.rays_in_doubt(
+            positions, alive, target_centers, samples, float(np.linalg.norm(CAR_HALF_EXTENTS)),
+            box_centres, box_half_extents, uav_radius,
+        )  # fmt: skip
+
     def detect(
         self,
         world: World,
@@ -168,10 +187,13 @@ class Detector:
         target_yaws: np.ndarray,
         target_headings: np.ndarray,
         rngs: list[np.random.Generator],
+        cast: np.ndarray | None = None,
     ) -> Detections:
         """`detect` for K worlds at once: positions (K, n, 3), yaws (K, n), the cars' centres
         (K, 3), yaws and headings (K,); each world casts its rays in its own PyBullet client
-        and draws its noise from its own generator. Returns arrays (K, n, ...)."""
+        and draws its noise from its own generator. ``cast`` (K, n, s) bool names the rays that
+        go to PyBullet (`rays_in_doubt`); the others reach their sample (None: cast all).
+        Returns arrays (K, n, ...)."""
         s = self._n_samples
         K, n = yaws.shape
         points = _to_world(self._local, target_centers, target_yaws)  # (K, P, 3)
@@ -182,7 +204,7 @@ class Detector:
             K * n
         )
         true = np.column_stack([proj.X[:, 0] / z0, proj.Y[:, 0] / z0, 1.0 / z0, psi])
-        visible, blocked = self._visibility(worlds, pos, points[:, 1 : 1 + s], proj)
+        visible, blocked = self._visibility(worlds, pos, points[:, 1 : 1 + s], proj, cast)
         all_front, box_u, box_v, truncated = self._box(proj)
         detected, noisy = self._measure(all_front, visible, box_u, box_v, proj.Z[:, 0], psi, rngs)
         cam = self.camera
@@ -221,25 +243,28 @@ class Detector:
         return _Projection(X, Y, Z, front, cam.fx * X / Zs + cam.cu, cam.fy * Y / Zs + cam.cv)
 
     def _visibility(
-        self, worlds: list[World], positions: np.ndarray, samples: np.ndarray, proj: _Projection
+        self,
+        worlds: list[World],
+        positions: np.ndarray,
+        samples: np.ndarray,
+        proj: _Projection,
+        cast: np.ndarray | None,
     ) -> tuple[np.ndarray, np.ndarray]:
         """(visible, blocked) fractions (B,) of the sample points (K, s, 3) of K worlds: in the
         image and reached by a ray; blocked = not reached (whatever the image bounds)."""
         cam, s = self.camera, self._n_samples
-        n = len(positions) // len(worlds)
+        K = len(worlds)
+        n = len(positions) // K
         sp = slice(1, 1 + s)
         pu, pv = proj.pu[:, sp], proj.pv[:, sp]
         in_image = proj.front[:, sp] & (pu >= 0) & (pu < cam.width) & (pv >= 0) & (pv < cam.height)
-        # every UAV's rays to its world's samples, world by world: (K n s, 3)
-        starts = np.repeat(positions, s, axis=0)
-        ends = np.repeat(samples, n, axis=0).reshape(-1, 3)
-        r = n * s
-        reach = np.concatenate(
-            [
-                world.rays_reach_target(starts[k * r : (k + 1) * r], ends[k * r : (k + 1) * r])
-                for k, world in enumerate(worlds)
-            ]
-        ).reshape(-1, s)
+        reach = np.ones((K, n, s), bool)
+        rays = np.ones((K, n, s), bool) if cast is None else cast
+        starts = positions.reshape(K, n, 3)
+        for k in np.flatnonzero(rays.any(axis=(1, 2))):
+            i, j = np.nonzero(rays[k])  # this world's rays that go to PyBullet
+            reach[k, i, j] = worlds[k].rays_reach_target(starts[k, i], samples[k, j])
+        reach = reach.reshape(K * n, s)
         return (in_image & reach).mean(axis=1), 1.0 - reach.mean(axis=1)
 
     def _box(self, proj: _Projection) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:

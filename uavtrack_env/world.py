@@ -50,9 +50,11 @@ class World:
         self.gui = gui
         self.uav_ids: list[int] = []
         self.obstacle_ids: list[int] = []
+        self._pending: tuple | None = None
 
     def build(self, layout: Layout, uav_radius: float) -> None:
         """(Re)create every body for a new episode."""
+        self._pending = None
         c = self.cid
         p.resetSimulation(physicsClientId=c)
         if self.gui:
@@ -108,7 +110,28 @@ class World:
         alive: np.ndarray,
         target_center: np.ndarray,
         target_yaw: float,
+        defer: bool = False,
     ) -> None:
+        """Pose the UAVs (those not ``alive`` parked far away) and the car. With ``defer`` the
+        poses reach PyBullet only before the next query that reads them (ray casts, contacts,
+        images), so a step whose queries are all skipped (`uavtrack_env.broadphase`) never
+        sends them; a GUI world poses at once."""
+        self._pending = (
+            np.array(positions, float),
+            np.array(yaws, float),
+            np.array(alive, bool),
+            np.array(target_center, float),
+            float(target_yaw),
+        )
+        if not defer or self.gui:
+            self.sync()
+
+    def sync(self) -> None:
+        """Send the latest poses of `set_poses` to PyBullet (nothing if they are there)."""
+        if self._pending is None:
+            return
+        positions, yaws, alive, target_center, target_yaw = self._pending
+        self._pending = None
         c = self.cid
         for uid, pos, yaw, ok in zip(self.uav_ids, positions, yaws, alive, strict=True):
             where = pos if ok else _PARK + [0.0, 0.0, 10.0 * uid]
@@ -119,6 +142,7 @@ class World:
 
     def contacts(self, n: int) -> dict[str, np.ndarray]:
         """Which UAVs touch the ground, an obstacle or the target: bool arrays (n,)."""
+        self.sync()
         p.performCollisionDetection(physicsClientId=self.cid)
         hits = {k: np.zeros(n, bool) for k in ("ground", "obstacle", "target")}
         for cp in p.getContactPoints(physicsClientId=self.cid):
@@ -133,6 +157,7 @@ class World:
         """For each ray, whether the first body it hits is the target: bool (R,)."""
         if len(starts) == 0:
             return np.zeros(0, bool)
+        self.sync()
         # float64 (R, 3) arrays go to PyBullet as they are (faster than lists of lists)
         starts = np.ascontiguousarray(starts, dtype=np.float64)
         ends = np.ascontiguousarray(ends, dtype=np.float64)
@@ -150,6 +175,7 @@ class World:
         far: float = 200.0,
     ) -> np.ndarray:
         """An RGB image (h, w, 3) uint8 rendered with TinyRenderer (headless)."""
+        self.sync()
         view = p.computeViewMatrix(
             eye.tolist(), target.tolist(), up.tolist(), physicsClientId=self.cid
         )
@@ -171,6 +197,7 @@ class World:
         self, target: np.ndarray, distance: float, yaw_deg: float, pitch_deg: float
     ) -> None:
         """Aim the GUI's debug camera at ``target`` (only meaningful with ``gui=True``)."""
+        self.sync()
         p.resetDebugVisualizerCamera(
             cameraDistance=distance,
             cameraYaw=yaw_deg,

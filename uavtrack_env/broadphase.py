@@ -1,0 +1,135 @@
+"""The PyBullet queries of a step whose answer the geometry already proves, so they are skipped.
+
+A detector ray runs from a UAV's centre to a sample point inside the car's box, so PyBullet
+reports the car as its first hit unless another body lies on it first. When the segment, widened
+by `RAY_MARGIN`, meets no obstacle's box, no other UAV's sphere and not the ground, and the UAV
+is outside the car's bounding sphere, the ray reaches the car: its cast is skipped. Likewise a
+UAV farther than `CONTACT_MARGIN` from every obstacle, the car and the ground touches none of
+them, so a world whose UAVs all are gets no contact query. Everything else goes to PyBullet.
+tests/test_broadphase.py checks that the results equal PyBullet's on every query, near-misses
+included, and that rollouts are bit-identical with `EnvConfig.skip_proven_queries` on and off.
+
+The geometry is the env's record of the episode's bodies (its obstacle boxes, the UAVs' state,
+the car's pose): bodies moved in the PyBullet client behind the env's back are not seen.
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+
+RAY_MARGIN = 1.0e-3
+"""Width (m) added to every body when deciding that a ray cannot hit it: far above PyBullet's
+single-precision rounding at the world's scale (~1e-5 m)."""
+CONTACT_MARGIN = 0.1
+"""A UAV whose clearance to every obstacle, the car and the ground exceeds this (m) is in no
+PyBullet contact (a contact needs clearance <= 0)."""
+FAR = 1.0e3
+"""A UAV or car farther than this (m) from the origin always gets its rays cast: the UAVs that
+left the episode are parked in PyBullet ~1.4e4 m away, out of every shorter segment's reach."""
+
+
+def rays_in_doubt(
+    position: np.ndarray,
+    alive: np.ndarray,
+    car_centres: np.ndarray,
+    samples: np.ndarray,
+    car_radius: float,
+    box_centres: np.ndarray,
+    box_half_extents: np.ndarray,
+    uav_radius: float,
+) -> np.ndarray:
+    """(K, n, s) bool: the ray from UAV i of world k to sample j may meet something before the
+    car, so it is cast.
+
+    position (K, n, 3) are the ray starts, alive (K, n) the UAVs posed in PyBullet (the others
+    are parked), car_centres (K, 3), samples (K, s, 3) the ray ends inside the car's box,
+    ``car_radius`` the car box's half diagonal; the obstacles are axis-aligned boxes (K, M, 3)
+    (padding: far away, zero size)."""
+    return _rays_in_doubt(
+        np.ascontiguousarray(position, np.float64), np.ascontiguousarray(alive, np.bool_),
+        np.ascontiguousarray(car_centres, np.float64), np.ascontiguousarray(samples, np.float64),
+        float(car_radius), np.ascontiguousarray(box_centres, np.float64),
+        np.ascontiguousarray(box_half_extents, np.float64), float(uav_radius),
+    )  # fmt: skip
+
+
+@numba.njit(cache=True)
+def _rays_in_doubt(p, alive, car, samples, car_radius, box_c, box_h, r, margin=RAY_MARGIN):
+    K, n, s, M = p.shape[0], p.shape[1], samples.shape[1], box_c.shape[1]
+    doubt = np.zeros((K, n, s), np.bool_)
+    reach2 = (r + margin) ** 2
+    for k in range(K):
+        car_far = max(abs(car[k, 0]), abs(car[k, 1]), abs(car[k, 2])) >= FAR
+        for i in range(n):
+            a = p[k, i]
+            dc = np.sqrt(
+                (car[k, 0] - a[0]) ** 2 + (car[k, 1] - a[1]) ** 2 + (car[k, 2] - a[2]) ** 2
+            )
+            if (
+                car_far
+                or dc <= car_radius + margin  # starts at or in the car
+                or a[2] <= margin  # the ground: a segment above it never meets it
+                or max(abs(a[0]), abs(a[1]), abs(a[2])) >= FAR
+            ):
+                doubt[k, i] = True
+                continue
+            for j in range(s):
+                e = samples[k, j]
+                if e[2] <= margin:
+                    doubt[k, i, j] = True
+                    continue
+                d0, d1, d2 = e[0] - a[0], e[1] - a[1], e[2] - a[2]
+                hit = False
+                for m in range(M):
+                    if _segment_meets_box(a, d0, d1, d2, box_c[k, m], box_h[k, m], margin):
+                        hit = True
+                        break
+                if not hit and n > 1:
+                    length2 = max(d0 * d0 + d1 * d1 + d2 * d2, 1e-300)
+                    for q in range(n):
+                        if q == i or not alive[k, q]:
+                            continue  # a ray starts at its own sphere's centre
+                        r0, r1, r2 = p[k, q, 0] - a[0], p[k, q, 1] - a[1], p[k, q, 2] - a[2]
+                        t = min(max((r0 * d0 + r1 * d1 + r2 * d2) / length2, 0.0), 1.0)
+                        g0, g1, g2 = r0 - t * d0, r1 - t * d1, r2 - t * d2
+                        if g0 * g0 + g1 * g1 + g2 * g2 <= reach2:
+                            hit = True
+                            break
+                doubt[k, i, j] = hit
+    return doubt
+
+
+@numba.njit(cache=True)
+def _segment_meets_box(a, d0, d1, d2, centre, half, widen):
+    """Segment a -> a + d meets the box widened by ``widen`` (slab test)."""
+    enter, leave = 0.0, 1.0
+    for axis, d in ((0, d0), (1, d1), (2, d2)):
+        lo = centre[axis] - half[axis] - widen
+        hi = centre[axis] + half[axis] + widen
+        if d == 0.0:
+            if a[axis] < lo or a[axis] > hi:
+                return False
+            continue
+        t1, t2 = (lo - a[axis]) / d, (hi - a[axis]) / d
+        if t1 > t2:
+            t1, t2 = t2, t1
+        enter, leave = max(enter, t1), min(leave, t2)
+        if enter > leave:
+            return False
+    return True
+
+
+def contacts_in_doubt(
+    obstacle_clearance: np.ndarray,
+    target_clearance: np.ndarray,
+    altitude: np.ndarray,
+    uav_radius: float,
+    alive: np.ndarray,
+) -> np.ndarray:
+    """(K,) bool: some posed UAV of world k is within `CONTACT_MARGIN` of an obstacle (clearance
+    (K, n, M)), the car (K, n) or the ground (altitude (K, n)); the others touch nothing."""
+    near = (target_clearance <= CONTACT_MARGIN) | (altitude - uav_radius <= CONTACT_MARGIN)
+    if obstacle_clearance.shape[-1]:
+        near |= obstacle_clearance.min(axis=-1) <= CONTACT_MARGIN
+    return (near & alive).any(axis=-1)
