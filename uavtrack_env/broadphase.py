@@ -56,48 +56,74 @@ def rays_in_doubt(
 
 @numba.njit(cache=True)
 def _rays_in_doubt(p, alive, car, samples, car_radius, box_c, box_h, r, margin=RAY_MARGIN):
+    """`rays_in_doubt`. Each ray to a sample lies within R (the samples' largest distance from
+    the car's centre) of the segment to the car's centre, so only the bodies near that capsule
+    are tested ray by ray."""
     K, n, s, M = p.shape[0], p.shape[1], samples.shape[1], box_c.shape[1]
     doubt = np.zeros((K, n, s), np.bool_)
     reach2 = (r + margin) ** 2
+    boxes, uavs = np.empty(M, np.int64), np.empty(n, np.int64)
     for k in range(K):
-        car_far = max(abs(car[k, 0]), abs(car[k, 1]), abs(car[k, 2])) >= FAR
+        c = car[k]
+        R = 0.0
+        for j in range(s):
+            e0, e1, e2 = samples[k, j, 0] - c[0], samples[k, j, 1] - c[1], samples[k, j, 2] - c[2]
+            R = max(R, np.sqrt(e0 * e0 + e1 * e1 + e2 * e2))
+        car_far = max(abs(c[0]), abs(c[1]), abs(c[2])) >= FAR
         for i in range(n):
             a = p[k, i]
-            dc = np.sqrt(
-                (car[k, 0] - a[0]) ** 2 + (car[k, 1] - a[1]) ** 2 + (car[k, 2] - a[2]) ** 2
-            )
+            c0, c1, c2 = c[0] - a[0], c[1] - a[1], c[2] - a[2]
             if (
                 car_far
-                or dc <= car_radius + margin  # starts at or in the car
+                or np.sqrt(c0 * c0 + c1 * c1 + c2 * c2) <= car_radius + margin  # at or in the car
                 or a[2] <= margin  # the ground: a segment above it never meets it
                 or max(abs(a[0]), abs(a[1]), abs(a[2])) >= FAR
             ):
                 doubt[k, i] = True
                 continue
+            nb = 0
+            for m in range(M):
+                if _segment_meets_box(a, c0, c1, c2, box_c[k, m], box_h[k, m], R + margin):
+                    boxes[nb] = m
+                    nb += 1
+            nu = 0
+            axis2 = max(c0 * c0 + c1 * c1 + c2 * c2, 1e-300)
+            for q in range(n):
+                if q != i and alive[k, q]:  # a ray starts at its own sphere's centre
+                    if _point_segment2(p[k, q], a, c0, c1, c2, axis2) <= (r + R + margin) ** 2:
+                        uavs[nu] = q
+                        nu += 1
             for j in range(s):
                 e = samples[k, j]
                 if e[2] <= margin:
                     doubt[k, i, j] = True
                     continue
+                if nb == 0 and nu == 0:
+                    continue
                 d0, d1, d2 = e[0] - a[0], e[1] - a[1], e[2] - a[2]
                 hit = False
-                for m in range(M):
+                for b in range(nb):
+                    m = boxes[b]
                     if _segment_meets_box(a, d0, d1, d2, box_c[k, m], box_h[k, m], margin):
                         hit = True
                         break
-                if not hit and n > 1:
+                if not hit and nu:
                     length2 = max(d0 * d0 + d1 * d1 + d2 * d2, 1e-300)
-                    for q in range(n):
-                        if q == i or not alive[k, q]:
-                            continue  # a ray starts at its own sphere's centre
-                        r0, r1, r2 = p[k, q, 0] - a[0], p[k, q, 1] - a[1], p[k, q, 2] - a[2]
-                        t = min(max((r0 * d0 + r1 * d1 + r2 * d2) / length2, 0.0), 1.0)
-                        g0, g1, g2 = r0 - t * d0, r1 - t * d1, r2 - t * d2
-                        if g0 * g0 + g1 * g1 + g2 * g2 <= reach2:
+                    for b in range(nu):
+                        if _point_segment2(p[k, uavs[b]], a, d0, d1, d2, length2) <= reach2:
                             hit = True
                             break
                 doubt[k, i, j] = hit
     return doubt
+
+
+@numba.njit(cache=True)
+def _point_segment2(x, a, d0, d1, d2, length2):
+    """Squared distance from point x to segment a -> a + d (|d|^2 = length2)."""
+    r0, r1, r2 = x[0] - a[0], x[1] - a[1], x[2] - a[2]
+    t = min(max((r0 * d0 + r1 * d1 + r2 * d2) / length2, 0.0), 1.0)
+    g0, g1, g2 = r0 - t * d0, r1 - t * d1, r2 - t * d2
+    return g0 * g0 + g1 * g1 + g2 * g2
 
 
 @numba.njit(cache=True)

@@ -67,7 +67,7 @@ def connected_batch(dist: np.ndarray, alive: np.ndarray, r_c: float) -> np.ndarr
     reach = ((dist <= r_c) & pairs) | np.eye(n, dtype=bool)
     hops = 1
     while hops < n - 1:
-        r = reach.astype(np.int64)
+        r = reach.astype(np.float64)  # BLAS; sums of 0/1 below 2^53 are exact
         reach = (r @ r) > 0
         hops *= 2
     return (reach | ~pairs).all(axis=(1, 2))

@@ -133,9 +133,11 @@ class World:
         positions, yaws, alive, target_center, target_yaw = self._pending
         self._pending = None
         c = self.cid
-        for uid, pos, yaw, ok in zip(self.uav_ids, positions, yaws, alive, strict=True):
-            where = pos if ok else _PARK + [0.0, 0.0, 10.0 * uid]
-            p.resetBasePositionAndOrientation(uid, where.tolist(), _quat(yaw), physicsClientId=c)
+        for uid, pos, yaw, ok in zip(
+            self.uav_ids, positions.tolist(), yaws.tolist(), alive.tolist(), strict=True
+        ):
+            where = pos if ok else (_PARK + [0.0, 0.0, 10.0 * uid]).tolist()
+            p.resetBasePositionAndOrientation(uid, where, _quat(yaw), physicsClientId=c)
         p.resetBasePositionAndOrientation(
             self.target_id, target_center.tolist(), _quat(target_yaw), physicsClientId=c
         )
