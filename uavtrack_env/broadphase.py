@@ -3,7 +3,9 @@
 A detector ray runs from a UAV's centre to a sample point inside the car's box, so PyBullet
 reports the car as its first hit unless another body lies on it first. When the segment, widened
 by `RAY_MARGIN`, meets no obstacle's box, no other UAV's sphere and not the ground, and the UAV
-is outside the car's bounding sphere, the ray reaches the car: its cast is skipped. Likewise a
+is outside the car's bounding sphere, the ray reaches the car. When it passes through another
+UAV's sphere (by more than the margin) that lies outside the car's bounding sphere, that sphere
+comes first: the ray is blocked. Either way its cast is skipped. Likewise a
 UAV farther than `CONTACT_MARGIN` from every obstacle, the car and the ground touches none of
 them, so a world whose UAVs all are gets no contact query. Everything else goes to PyBullet.
 tests/test_broadphase.py checks that the results equal PyBullet's on every query, near-misses
@@ -29,7 +31,11 @@ FAR = 1.0e3
 left the episode are parked in PyBullet ~1.4e4 m away, out of every shorter segment's reach."""
 
 
-def rays_in_doubt(
+REACHES, BLOCKED, UNKNOWN = 1, 0, -1
+"""`known_rays`' answers: the ray's first hit is the car, is another body, or is for PyBullet."""
+
+
+def known_rays(
     position: np.ndarray,
     alive: np.ndarray,
     car_centres: np.ndarray,
@@ -39,14 +45,14 @@ def rays_in_doubt(
     box_half_extents: np.ndarray,
     uav_radius: float,
 ) -> np.ndarray:
-    """(K, n, s) bool: the ray from UAV i of world k to sample j may meet something before the
-    car, so it is cast.
+    """(K, n, s) int8: whether the ray from UAV i of world k to sample j `REACHES` the car, is
+    `BLOCKED`, or is `UNKNOWN` (cast it).
 
     position (K, n, 3) are the ray starts, alive (K, n) the UAVs posed in PyBullet (the others
     are parked), car_centres (K, 3), samples (K, s, 3) the ray ends inside the car's box,
     ``car_radius`` the car box's half diagonal; the obstacles are axis-aligned boxes (K, M, 3)
     (padding: far away, zero size)."""
-    return _rays_in_doubt(
+    return _known_rays(
         np.ascontiguousarray(position, np.float64), np.ascontiguousarray(alive, np.bool_),
         np.ascontiguousarray(car_centres, np.float64), np.ascontiguousarray(samples, np.float64),
         float(car_radius), np.ascontiguousarray(box_centres, np.float64),
@@ -55,13 +61,14 @@ def rays_in_doubt(
 
 
 @numba.njit(cache=True)
-def _rays_in_doubt(p, alive, car, samples, car_radius, box_c, box_h, r, margin=RAY_MARGIN):
-    """`rays_in_doubt`. Each ray to a sample lies within R (the samples' largest distance from
+def _known_rays(p, alive, car, samples, car_radius, box_c, box_h, r, margin=RAY_MARGIN):
+    """`known_rays`. Each ray to a sample lies within R (the samples' largest distance from
     the car's centre) of the segment to the car's centre, so only the bodies near that capsule
     are tested ray by ray."""
     K, n, s, M = p.shape[0], p.shape[1], samples.shape[1], box_c.shape[1]
-    doubt = np.zeros((K, n, s), np.bool_)
-    reach2 = (r + margin) ** 2
+    known = np.full((K, n, s), REACHES, np.int8)
+    reach2, inside2 = (r + margin) ** 2, max(r - margin, 0.0) ** 2
+    blocker2 = (car_radius + r + margin) ** 2  # a sphere this far from the car is hit first
     boxes, uavs = np.empty(M, np.int64), np.empty(n, np.int64)
     for k in range(K):
         c = car[k]
@@ -79,7 +86,7 @@ def _rays_in_doubt(p, alive, car, samples, car_radius, box_c, box_h, r, margin=R
                 or a[2] <= margin  # the ground: a segment above it never meets it
                 or max(abs(a[0]), abs(a[1]), abs(a[2])) >= FAR
             ):
-                doubt[k, i] = True
+                known[k, i] = UNKNOWN
                 continue
             nb = 0
             for m in range(M):
@@ -96,25 +103,36 @@ def _rays_in_doubt(p, alive, car, samples, car_radius, box_c, box_h, r, margin=R
             for j in range(s):
                 e = samples[k, j]
                 if e[2] <= margin:
-                    doubt[k, i, j] = True
+                    known[k, i, j] = UNKNOWN
                     continue
                 if nb == 0 and nu == 0:
                     continue
                 d0, d1, d2 = e[0] - a[0], e[1] - a[1], e[2] - a[2]
-                hit = False
+                answer = REACHES
                 for b in range(nb):
                     m = boxes[b]
                     if _segment_meets_box(a, d0, d1, d2, box_c[k, m], box_h[k, m], margin):
-                        hit = True
+                        answer = UNKNOWN
                         break
-                if not hit and nu:
+                if nu:
                     length2 = max(d0 * d0 + d1 * d1 + d2 * d2, 1e-300)
                     for b in range(nu):
-                        if _point_segment2(p[k, uavs[b]], a, d0, d1, d2, length2) <= reach2:
-                            hit = True
+                        q = p[k, uavs[b]]
+                        gap2 = _point_segment2(q, a, d0, d1, d2, length2)
+                        if gap2 > reach2:
+                            continue
+                        s0, s1, s2 = q[0] - a[0], q[1] - a[1], q[2] - a[2]
+                        g0, g1, g2 = q[0] - c[0], q[1] - c[1], q[2] - c[2]
+                        if (
+                            gap2 <= inside2
+                            and s0 * s0 + s1 * s1 + s2 * s2 > reach2  # starts outside it
+                            and g0 * g0 + g1 * g1 + g2 * g2 > blocker2
+                        ):
+                            answer = BLOCKED
                             break
-                doubt[k, i, j] = hit
-    return doubt
+                        answer = UNKNOWN
+                known[k, i, j] = answer
+    return known
 
 
 @numba.njit(cache=True)

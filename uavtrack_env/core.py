@@ -179,9 +179,9 @@ def sense(
     headings = np.array([t.heading for t in targets], float)
     clearance = _box_distance(position, obstacles) - cfg.uav_radius
     target_clearance = _target_clearance(position, centers, headings) - cfg.uav_radius
-    cast = touch = None
+    known = touch = None
     if cfg.skip_proven_queries:
-        cast = detector.rays_in_doubt(
+        known = detector.known_rays(
             position, alive, centers, headings, obstacles.centers, obstacles.half_extents,
             cfg.uav_radius,
         )  # fmt: skip
@@ -189,7 +189,7 @@ def sense(
             clearance, target_clearance, position[..., 2], cfg.uav_radius, alive
         )
     det = detector.detect_batch(
-        list(worlds), position, yaw, centers, headings, headings, rngs, cast=cast
+        list(worlds), position, yaw, centers, headings, headings, rngs, known=known
     )
     pair = np.linalg.norm(position[:, :, None] - position[:, None], axis=-1)
     received = receive_batch(pair, alive, cfg.comms, list(rngs))

@@ -138,7 +138,7 @@ class Detector:
         # One transform for all points: the centre, the ray-cast samples, the 8 box corners.
         self._local = np.vstack([np.zeros((1, 3)), samples, _CORNER_SIGNS * CAR_HALF_EXTENTS])
 
-    def rays_in_doubt(
+    def known_rays(
         self,
         positions: np.ndarray,
         alive: np.ndarray,
@@ -148,10 +148,10 @@ class Detector:
         box_half_extents: np.ndarray,
         uav_radius: float,
     ) -> np.ndarray:
-        """(K, n, s) bool: the rays to the car's samples that must be cast; the others reach
-        their sample (`uavtrack_env.broadphase.rays_in_doubt`)."""
+        """(K, n, s) int8: which rays to the car's samples reach it, are blocked, or must be
+        cast (`uavtrack_env.broadphase.known_rays`)."""
         samples = _to_world(self._local[1 : 1 + self._n_samples], target_centers, target_yaws)
-        return broadphase.rays_in_doubt(
+        return broadphase.known_rays(
             positions, alive, target_centers, samples, float(np.linalg.norm(CAR_HALF_EXTENTS)),
             box_centres, box_half_extents, uav_radius,
         )  # fmt: skip
@@ -187,12 +187,12 @@ class Detector:
         target_yaws: np.ndarray,
         target_headings: np.ndarray,
         rngs: list[np.random.Generator],
-        cast: np.ndarray | None = None,
+        known: np.ndarray | None = None,
     ) -> Detections:
         """`detect` for K worlds at once: positions (K, n, 3), yaws (K, n), the cars' centres
         (K, 3), yaws and headings (K,); each world casts its rays in its own PyBullet client
-        and draws its noise from its own generator. ``cast`` (K, n, s) bool names the rays that
-        go to PyBullet (`rays_in_doubt`); the others reach their sample (None: cast all).
+        and draws its noise from its own generator. ``known`` (K, n, s) holds the rays' answers
+        the geometry proves (`known_rays`); the `UNKNOWN` ones go to PyBullet (None: all).
         Returns arrays (K, n, ...)."""
         s = self._n_samples
         K, n = yaws.shape
@@ -204,7 +204,7 @@ class Detector:
             K * n
         )
         true = np.column_stack([proj.X[:, 0] / z0, proj.Y[:, 0] / z0, 1.0 / z0, psi])
-        visible, blocked = self._visibility(worlds, pos, points[:, 1 : 1 + s], proj, cast)
+        visible, blocked = self._visibility(worlds, pos, points[:, 1 : 1 + s], proj, known)
         all_front, box_u, box_v, truncated = self._box(proj)
         detected, noisy = self._measure(all_front, visible, box_u, box_v, proj.Z[:, 0], psi, rngs)
         cam = self.camera
@@ -248,7 +248,7 @@ class Detector:
         positions: np.ndarray,
         samples: np.ndarray,
         proj: _Projection,
-        cast: np.ndarray | None,
+        known: np.ndarray | None,
     ) -> tuple[np.ndarray, np.ndarray]:
         """(visible, blocked) fractions (B,) of the sample points (K, s, 3) of K worlds: in the
         image and reached by a ray; blocked = not reached (whatever the image bounds)."""
@@ -258,8 +258,10 @@ class Detector:
         sp = slice(1, 1 + s)
         pu, pv = proj.pu[:, sp], proj.pv[:, sp]
         in_image = proj.front[:, sp] & (pu >= 0) & (pu < cam.width) & (pv >= 0) & (pv < cam.height)
-        reach = np.ones((K, n, s), bool)
-        rays = np.ones((K, n, s), bool) if cast is None else cast
+        if known is None:
+            reach, rays = np.zeros((K, n, s), bool), np.ones((K, n, s), bool)
+        else:
+            reach, rays = known == broadphase.REACHES, known == broadphase.UNKNOWN
         starts = positions.reshape(K, n, 3)
         for k in np.flatnonzero(rays.any(axis=(1, 2))):
             i, j = np.nonzero(rays[k])  # this world's rays that go to PyBullet
