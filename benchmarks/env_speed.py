@@ -5,7 +5,8 @@
 Prints, per team size, the median over repeats of steps/s, agent-steps/s and us per agent-step,
 the real-time factor at 80 Hz and the per-agent cost relative to n = 3; then the same for
 ``vector_env(num_envs=K)`` at each ``--vector-n`` (array infos, autoreset) beside the ParallelEnv,
-and ``VectorCBFShield`` over it (n = 3) beside the bare vector env.
+and ``VectorCBFShield`` over it (n = 3) beside the bare vector env; with ``--exact``, both envs at
+n = 3 with and without the skipped PyBullet queries (`uavtrack_env.broadphase`).
 """
 
 from __future__ import annotations
@@ -22,9 +23,13 @@ from uavtrack_env.config import MAX_EPISODE_STEPS
 from uavtrack_env.wrappers import VectorCBFShield
 
 
-def steps_per_second(n: int, steps: int, seed: int) -> float:
+def steps_per_second(n: int, steps: int, seed: int, skip: bool = True) -> float:
     env = uavtrack_v0.parallel_env(
-        scenario="random", n_uavs=n, max_cycles=MAX_EPISODE_STEPS, terminate_on_collision="agent"
+        scenario="random",
+        n_uavs=n,
+        max_cycles=MAX_EPISODE_STEPS,
+        terminate_on_collision="agent",
+        skip_proven_queries=skip,
     )
     rng = np.random.default_rng(seed)
     env.reset(seed=seed)
@@ -42,16 +47,18 @@ def steps_per_second(n: int, steps: int, seed: int) -> float:
 
 
 def vector_agent_steps_per_second(
-    k: int, steps: int, seed: int, n: int = 3, shield: bool = False
+    k: int, steps: int, seed: int, n: int = 3, shield: bool = False, skip: bool = True
 ) -> float:
     """Agent-steps/s of ``vector_env(num_envs=k)`` with n UAVs (rows that took part in a step),
-    wrapped in `VectorCBFShield` (preset ``tuned``) with ``shield``."""
+    wrapped in `VectorCBFShield` (preset ``tuned``) with ``shield``; ``skip``:
+    `EnvConfig.skip_proven_queries`."""
     env = uavtrack_v0.vector_env(
         k,
         scenario="random",
         n_uavs=n,
         max_cycles=MAX_EPISODE_STEPS,
         terminate_on_collision="agent",
+        skip_proven_queries=skip,
     )
     if shield:
         env = VectorCBFShield(env)
@@ -76,6 +83,12 @@ def main() -> None:
     ap.add_argument("--vector", type=int, default=64, help="worlds of the vector_env (0: skip)")
     ap.add_argument(
         "--vector-n", type=int, nargs="+", default=[3, 30], help="UAVs per vector_env world"
+    )
+    ap.add_argument(
+        "--exact",
+        action="store_true",
+        help="also n = 3 with every ray and contact query sent to PyBullet "
+        "(skip_proven_queries=False), beside the default",
     )
     args = ap.parse_args()
     print(
@@ -122,6 +135,19 @@ def main() -> None:
             f"({1e6 / shielded:.1f} us per agent-step); bare {bare:.0f}, "
             f"ratio {shielded / bare:.2f}"
         )
+    if args.exact and args.vector:
+        for skip in (True, False):
+            par = statistics.median(
+                3 * steps_per_second(3, args.steps, s, skip) for s in range(args.repeats)
+            )
+            vec = statistics.median(
+                vector_agent_steps_per_second(k, max(1, args.steps // k), s, 3, skip=skip)
+                for s in range(args.repeats)
+            )
+            print(
+                f"skip_proven_queries={skip!s:<5}, n = 3: ParallelEnv {par:.0f}, "
+                f"vector_env({k}) {vec:.0f} agent-steps/s"
+            )
 
 
 if __name__ == "__main__":
