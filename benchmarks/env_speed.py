@@ -145,7 +145,7 @@ def main() -> None:
                 for s in range(args.repeats)
             )
             print(
-                f"skip_proven_queries={skip!s:<5}, n = 3: ParallelEnv {par:.0f}, "
+                f"skip_proven_queries={skip}, n = 3: ParallelEnv {par:.0f}, "
                 f"vector_env({k}) {vec:.0f} agent-steps/s"
             )
 
