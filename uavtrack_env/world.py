@@ -1,7 +1,10 @@
 """The PyBullet world: one client per env; ground, box obstacles, the car, UAV spheres.
 
 Bodies are kinematic: poses are set each step, never simulated by `stepSimulation`; PyBullet
-provides contact detection on the real shapes and ray casts for the camera's line of sight.
+provides contact detection on the real shapes and ray casts for the camera's line of sight. The
+obstacles stay where the layout puts them: the env skips the queries its own record of the
+bodies answers (`uavtrack_env.broadphase`), so a body moved in the client directly is not seen
+by those.
 Every call names this world's client, so envs in one process never share state.
 """
 
