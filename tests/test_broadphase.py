@@ -19,7 +19,9 @@ from uavtrack_env.broadphase import (
     RAY_MARGIN,
     REACHES,
     UNKNOWN,
+    Bodies,
     contacts_in_doubt,
+    known_rays,
 )
 from uavtrack_env.sensors import _to_world
 from uavtrack_env.target import CAR_HALF_EXTENTS
@@ -91,10 +93,15 @@ def test_skipped_rays_and_contacts_are_what_pybullet_reports(seed):
         env.alive = rng.random(6) > 0.15
         world.set_poses(env.position, env.yaw, env.alive, env.target.center(), env.target.heading)
         m_fast = env._sense()  # a batch of one world
-        known = det.known_rays(
-            env.position[None], env.alive[None], env.target.center()[None], heading,
-            env._obstacles.centers, env._obstacles.half_extents, env.config.uav_radius,
-        )[0]  # fmt: skip
+        bodies = Bodies(
+            env.alive[None], env._obstacles.centers, env._obstacles.half_extents,
+            env.config.uav_radius,
+        )  # fmt: skip
+        radius = float(np.linalg.norm(ends - env.target.center(), axis=1).max())
+        car = float(np.linalg.norm(CAR_HALF_EXTENTS))
+        known = known_rays(
+            env.position[None], env.target.center()[None], ends[None], radius, car, bodies
+        )[0]
         reach = world.rays_reach_target(np.repeat(env.position, s, 0), np.tile(ends, (6, 1)))
         proven = known != UNKNOWN
         np.testing.assert_array_equal(reach.reshape(6, s)[proven], known[proven] == REACHES)

@@ -17,6 +17,8 @@ the car's pose): bodies moved in the PyBullet client behind the env's back are n
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numba
 import numpy as np
 
@@ -35,33 +37,44 @@ REACHES, BLOCKED, UNKNOWN = 1, 0, -1
 """`known_rays`' answers: the ray's first hit is the car, is another body, or is for PyBullet."""
 
 
+class Bodies(NamedTuple):
+    """What a ray to the car may meet first, as the env records it."""
+
+    alive: np.ndarray
+    """(K, n) bool: the UAVs posed in PyBullet (the others are parked)."""
+    box_centres: np.ndarray
+    """(K, M, 3) centres of the axis-aligned obstacle boxes (padding: far away, zero size)."""
+    box_half_extents: np.ndarray
+    """(K, M, 3) their half extents."""
+    uav_radius: float
+
+
 def known_rays(
     position: np.ndarray,
-    alive: np.ndarray,
     car_centres: np.ndarray,
     samples: np.ndarray,
+    sample_radius: float,
     car_radius: float,
-    box_centres: np.ndarray,
-    box_half_extents: np.ndarray,
-    uav_radius: float,
+    bodies: Bodies,
 ) -> np.ndarray:
     """(K, n, s) int8: whether the ray from UAV i of world k to sample j `REACHES` the car, is
     `BLOCKED`, or is `UNKNOWN` (cast it).
 
-    position (K, n, 3) are the ray starts, alive (K, n) the UAVs posed in PyBullet (the others
-    are parked), car_centres (K, 3), samples (K, s, 3) the ray ends inside the car's box,
-    ``car_radius`` the car box's half diagonal; the obstacles are axis-aligned boxes (K, M, 3)
-    (padding: far away, zero size)."""
+    position (K, n, 3) are the ray starts, car_centres (K, 3), samples (K, s, 3) the ray ends
+    inside the car's box, at most ``sample_radius`` from its centre; ``car_radius`` is the car
+    box's half diagonal."""
     return _known_rays(
-        np.ascontiguousarray(position, np.float64), np.ascontiguousarray(alive, np.bool_),
+        np.ascontiguousarray(position, np.float64),
+        np.ascontiguousarray(bodies.alive, np.bool_),
         np.ascontiguousarray(car_centres, np.float64), np.ascontiguousarray(samples, np.float64),
-        float(car_radius), np.ascontiguousarray(box_centres, np.float64),
-        np.ascontiguousarray(box_half_extents, np.float64), float(uav_radius),
+        float(sample_radius), float(car_radius),
+        np.ascontiguousarray(bodies.box_centres, np.float64),
+        np.ascontiguousarray(bodies.box_half_extents, np.float64), float(bodies.uav_radius),
     )  # fmt: skip
 
 
 @numba.njit(cache=True)
-def _known_rays(p, alive, car, samples, car_radius, box_c, box_h, r, margin=RAY_MARGIN):
+def _known_rays(p, alive, car, samples, R, car_radius, box_c, box_h, r, margin=RAY_MARGIN):
     """`known_rays`. Each ray to a sample lies within R (the samples' largest distance from
     the car's centre) of the segment to the car's centre, so only the bodies near that capsule
     are tested ray by ray."""
@@ -69,13 +82,10 @@ def _known_rays(p, alive, car, samples, car_radius, box_c, box_h, r, margin=RAY_
     known = np.full((K, n, s), REACHES, np.int8)
     reach2, inside2 = (r + margin) ** 2, max(r - margin, 0.0) ** 2
     blocker2 = (car_radius + r + margin) ** 2  # a sphere this far from the car is hit first
+    capsule2 = (r + R + margin) ** 2
     boxes, uavs = np.empty(M, np.int64), np.empty(n, np.int64)
     for k in range(K):
         c = car[k]
-        R = 0.0
-        for j in range(s):
-            e0, e1, e2 = samples[k, j, 0] - c[0], samples[k, j, 1] - c[1], samples[k, j, 2] - c[2]
-            R = max(R, np.sqrt(e0 * e0 + e1 * e1 + e2 * e2))
         car_far = max(abs(c[0]), abs(c[1]), abs(c[2])) >= FAR
         for i in range(n):
             a = p[k, i]
@@ -97,7 +107,7 @@ def _known_rays(p, alive, car, samples, car_radius, box_c, box_h, r, margin=RAY_
             axis2 = max(c0 * c0 + c1 * c1 + c2 * c2, 1e-300)
             for q in range(n):
                 if q != i and alive[k, q]:  # a ray starts at its own sphere's centre
-                    if _point_segment2(p[k, q], a, c0, c1, c2, axis2) <= (r + R + margin) ** 2:
+                    if _point_segment2(p[k, q], a, c0, c1, c2, axis2) <= capsule2:
                         uavs[nu] = q
                         nu += 1
             for j in range(s):

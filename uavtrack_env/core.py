@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .broadphase import contacts_in_doubt
+from .broadphase import Bodies, contacts_in_doubt
 from .config import DT, EnvConfig
 from .dynamics import integrate
 from .geometry import occlusion_angle, point_box_distance, world_to_cam_vec
@@ -179,17 +179,14 @@ def sense(
     headings = np.array([t.heading for t in targets], float)
     clearance = _box_distance(position, obstacles) - cfg.uav_radius
     target_clearance = _target_clearance(position, centers, headings) - cfg.uav_radius
-    known = touch = None
+    bodies = touch = None
     if cfg.skip_proven_queries:
-        known = detector.known_rays(
-            position, alive, centers, headings, obstacles.centers, obstacles.half_extents,
-            cfg.uav_radius,
-        )  # fmt: skip
+        bodies = Bodies(alive, obstacles.centers, obstacles.half_extents, cfg.uav_radius)
         touch = contacts_in_doubt(
             clearance, target_clearance, position[..., 2], cfg.uav_radius, alive
         )
     det = detector.detect_batch(
-        list(worlds), position, yaw, centers, headings, headings, rngs, known=known
+        list(worlds), position, yaw, centers, headings, headings, rngs, bodies=bodies
     )
     pair = np.linalg.norm(position[:, :, None] - position[:, None], axis=-1)
     received = receive_batch(pair, alive, cfg.comms, list(rngs))

@@ -115,6 +115,10 @@ _CORNER_SIGNS = np.array(
 )
 
 
+_CAR_RADIUS = float(np.linalg.norm(CAR_HALF_EXTENTS))
+"""Half diagonal of the car's box (m)."""
+
+
 def _to_world(local: np.ndarray, centers: np.ndarray, yaws: np.ndarray) -> np.ndarray:
     """Points (P, 3) of a body frame in the global frame of K bodies: (K, P, 3)."""
     c, s = np.cos(yaws)[:, None], np.sin(yaws)[:, None]
@@ -137,24 +141,7 @@ class Detector:
         self._n_samples = len(samples)
         # One transform for all points: the centre, the ray-cast samples, the 8 box corners.
         self._local = np.vstack([np.zeros((1, 3)), samples, _CORNER_SIGNS * CAR_HALF_EXTENTS])
-
-    def known_rays(
-        self,
-        positions: np.ndarray,
-        alive: np.ndarray,
-        target_centers: np.ndarray,
-        target_yaws: np.ndarray,
-        box_centres: np.ndarray,
-        box_half_extents: np.ndarray,
-        uav_radius: float,
-    ) -> np.ndarray:
-        """(K, n, s) int8: which rays to the car's samples reach it, are blocked, or must be
-        cast (`uavtrack_env.broadphase.known_rays`)."""
-        samples = _to_world(self._local[1 : 1 + self._n_samples], target_centers, target_yaws)
-        return broadphase.known_rays(
-            positions, alive, target_centers, samples, float(np.linalg.norm(CAR_HALF_EXTENTS)),
-            box_centres, box_half_extents, uav_radius,
-        )  # fmt: skip
+        self._sample_radius = float(np.linalg.norm(samples, axis=1).max())
 
     def detect(
         self,
@@ -187,12 +174,13 @@ class Detector:
         target_yaws: np.ndarray,
         target_headings: np.ndarray,
         rngs: list[np.random.Generator],
-        known: np.ndarray | None = None,
+        bodies: broadphase.Bodies | None = None,
     ) -> Detections:
         """`detect` for K worlds at once: positions (K, n, 3), yaws (K, n), the cars' centres
         (K, 3), yaws and headings (K,); each world casts its rays in its own PyBullet client
-        and draws its noise from its own generator. ``known`` (K, n, s) holds the rays' answers
-        the geometry proves (`known_rays`); the `UNKNOWN` ones go to PyBullet (None: all).
+        and draws its noise from its own generator. With ``bodies`` (the env's record of what a ray
+        may meet) only the rays whose answer `broadphase.known_rays` cannot prove go to
+        PyBullet (None: all).
         Returns arrays (K, n, ...)."""
         s = self._n_samples
         K, n = yaws.shape
@@ -204,7 +192,13 @@ class Detector:
             K * n
         )
         true = np.column_stack([proj.X[:, 0] / z0, proj.Y[:, 0] / z0, 1.0 / z0, psi])
-        visible, blocked = self._visibility(worlds, pos, points[:, 1 : 1 + s], proj, known)
+        samples = points[:, 1 : 1 + s]
+        known = None
+        if bodies is not None:
+            known = broadphase.known_rays(
+                positions, target_centers, samples, self._sample_radius, _CAR_RADIUS, bodies
+            )
+        visible, blocked = self._visibility(worlds, pos, samples, proj, known)
         all_front, box_u, box_v, truncated = self._box(proj)
         detected, noisy = self._measure(all_front, visible, box_u, box_v, proj.Z[:, 0], psi, rngs)
         cam = self.camera
