@@ -15,11 +15,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .broadphase import Bodies, contacts_in_doubt
+from . import core_kernels
+from .broadphase import CONTACT_MARGIN, Bodies
 from .config import DT, EnvConfig
 from .dynamics import integrate
-from .geometry import occlusion_angle, point_box_distance, world_to_cam_vec
-from .rewards import connected_batch, effort_term, reward, tracking_term
+from .rewards import FEATURE_ERROR_CAP
 from .scenarios import Layout
 from .sensors import Detections, Detector, receive_batch
 from .target import CAR_HALF_EXTENTS, TargetMotion
@@ -177,39 +177,33 @@ def sense(
     for k, target in enumerate(targets):
         centers[k] = target.center()
     headings = np.array([t.heading for t in targets], float)
-    clearance = _box_distance(position, obstacles) - cfg.uav_radius
-    target_clearance = _target_clearance(position, centers, headings) - cfg.uav_radius
-    bodies = touch = None
+    (pair, nearest_uav, clearance, nearest_obstacle, target_clearance, theta, in_noi, touch) = (
+        core_kernels.sense_geometry(
+            position, alive, centers, headings, CAR_HALF_EXTENTS, obstacles.centers,
+            obstacles.half_extents, obstacles.present, cfg.uav_radius, CONTACT_MARGIN,
+        )
+    )  # fmt: skip
+    bodies = None
     if cfg.skip_proven_queries:
         bodies = Bodies(alive, obstacles.centers, obstacles.half_extents, cfg.uav_radius)
-        touch = contacts_in_doubt(
-            clearance, target_clearance, position[..., 2], cfg.uav_radius, alive
-        )
     det = detector.detect_batch(
         list(worlds), position, yaw, centers, headings, headings, rngs, bodies=bodies
     )
-    pair = np.linalg.norm(position[:, :, None] - position[:, None], axis=-1)
     received = receive_batch(pair, alive, cfg.comms, list(rngs))
     hits = {key: np.zeros((K, n), bool) for key in ("ground", "obstacle", "target")}
     for k, world in enumerate(worlds):
-        if touch is not None and not touch[k]:
+        if bodies is not None and not touch[k]:
             continue  # no UAV near anything: PyBullet would report no contact
         for key, hit in world.contacts(n).items():
             hits[key][k] = hit
-
-    both = alive[:, :, None] & alive[:, None, :]
-    both.reshape(K, n * n)[:, :: n + 1] = False  # the diagonals
-    dist = np.where(both, pair, np.inf)
-    theta, in_noi = _occlusion(position, centers, obstacles)
-    M = clearance.shape[-1]
     return Measurements(
         detections=det,
         distances=pair,
         received=received,
         contacts=hits,
-        nearest_uav=dist.min(axis=-1),
+        nearest_uav=nearest_uav,
         obstacle_clearance=clearance,
-        nearest_obstacle=clearance.min(axis=-1) if M else np.full((K, n), np.inf),
+        nearest_obstacle=nearest_obstacle,
         target_center=centers,
         target_heading=headings,
         target_clearance=target_clearance,
@@ -218,67 +212,32 @@ def sense(
     )
 
 
-def _box_distance(position: np.ndarray, obstacles: Obstacles) -> np.ndarray:
-    """Distance from each UAV centre to each obstacle box (K, n, M); inf for padding."""
-    d = (
-        np.abs(position[:, :, None, :] - obstacles.centers[:, None])
-        - obstacles.half_extents[:, None]
-    )
-    dist = np.linalg.norm(np.maximum(d, 0.0), axis=-1)
-    return np.where(obstacles.present[:, None], dist, np.inf) if obstacles.padded else dist
-
-
-def _occlusion(
-    position: np.ndarray, target_centers: np.ndarray, obstacles: Obstacles
-) -> tuple[np.ndarray, np.ndarray]:
-    """theta (K, n, M) of eq. (38) with n^i = target - p^i (36), and membership of N_oi (39)."""
-    centers = obstacles.centers
-    n_vec = target_centers[:, None] - position  # (K, n, 3)
-    theta = occlusion_angle(position[:, :, None], centers[:, None], n_vec[:, :, None])
-    d_obs = np.linalg.norm(centers[:, None] - position[:, :, None], axis=-1)
-    in_noi = d_obs <= np.linalg.norm(n_vec, axis=-1)[..., None]
-    return theta, (in_noi & obstacles.present[:, None]) if obstacles.padded else in_noi
-
-
-def _target_clearance(
-    position: np.ndarray, centers: np.ndarray, headings: np.ndarray
-) -> np.ndarray:
-    """Distance from each UAV centre to its world's car box (K, n), in the car's frame."""
-    K, n = position.shape[:2]
-    local = (position - centers[:, None]).reshape(K * n, 3)
-    h = np.repeat(headings, n)
-    c, s = np.cos(h), np.sin(h)
-    local = np.column_stack(
-        [c * local[:, 0] + s * local[:, 1], -s * local[:, 0] + c * local[:, 1], local[:, 2]]
-    )
-    d = point_box_distance(local, np.zeros((1, 3)), CAR_HALF_EXTENTS[None])[:, 0]
-    return d.reshape(K, n)
-
-
 def score(
     cfg: EnvConfig, m: Measurements, references: np.ndarray, alive: np.ndarray, u: np.ndarray
 ) -> Score:
-    """Reward terms (from the true features and u (K, n, 4)) and the three violations."""
-    K, n = alive.shape
-    det, hits = m.detections, m.contacts
-    too_close = m.nearest_uav < cfg.violations.r_s
-    collided = (hits["ground"] | hits["obstacle"] | hits["target"] | too_close) & alive
-    tracking = tracking_term(
-        det.true_features.reshape(K * n, 4),
-        references.reshape(K * n, 4),
-        det.in_front.reshape(K * n),
-        det.detected.reshape(K * n),
-        cfg.reward,
-    ).reshape(K, n)
-    effort = effort_term(u.reshape(K * n, 4), cfg.reward).reshape(K, n)
+    """Reward terms (from the true features and u (K, n, 4)) and the three violations: the
+    terms of `rewards` (`tracking_term`, `effort_term`, `reward`, `connected`), in one kernel."""
+    det, hits, rc = m.detections, m.contacts, cfg.reward
+    settings = np.array(
+        [
+            rc.lost_penalty, cfg.violations.r_s, cfg.comms.r_c, rc.collision_penalty,
+            1.0 - cfg.detector.min_visible_fraction, float(rc.shape == "exp"),
+        ]
+    )  # fmt: skip
+    values, flags, disconnected = core_kernels.score(
+        det.true_features, references, det.in_front, det.detected, u, hits["ground"],
+        hits["obstacle"], hits["target"], m.nearest_uav, alive, m.distances,
+        det.blocked_fraction, np.asarray(rc.q, float), np.asarray(rc.r, float),
+        FEATURE_ERROR_CAP, settings,
+    )  # fmt: skip
     return Score(
-        tracking=tracking,
-        effort=effort,
-        reward=reward(tracking + effort, collided, cfg.reward),
-        collided=collided,
-        uav_too_close=too_close,
-        disconnected=~connected_batch(m.distances, alive, cfg.comms.r_c),
-        occluded=det.blocked_fraction > 1.0 - cfg.detector.min_visible_fraction,
+        tracking=values[0],
+        effort=values[1],
+        reward=values[2],
+        collided=flags[0],
+        uav_too_close=flags[1],
+        disconnected=disconnected,
+        occluded=flags[2],
     )
 
 
@@ -292,98 +251,12 @@ def observation(
 ) -> np.ndarray:
     """Every UAV's observation (K, n, n_obs) float32, clipped to ``bounds`` (rows of finished
     UAVs included)."""
-    position, yaw = state[0], state[1]
-    K, n = yaw.shape
-    blocks = [_own_block(cfg, m.detections, state, references).reshape(K, n, -1)]
-    if cfg.n_neighbours:
-        blocks.append(_neighbour_block(cfg, m.received, m.distances, position, yaw))
-    if cfg.n_obstacles_obs:
-        blocks.append(_obstacle_block(cfg, m.obstacle_clearance, position, yaw, obstacles))
-    obs = np.clip(np.concatenate(blocks, -1), *bounds)
-    return obs.astype(np.float32)
-
-
-def _own_block(
-    cfg: EnvConfig,
-    det: Detections,
-    state: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
-    references: np.ndarray,
-) -> np.ndarray:
-    """The own fields (K n, 19): measured features, detection, own motion, s*."""
-    position, yaw, velocity, yaw_rate = (x.reshape(-1, *x.shape[2:]) for x in state)
-    B, cam = len(yaw), cfg.camera
-    detected = det.detected.reshape(B)
-    psi = det.psi.reshape(B)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        feats = np.column_stack(
-            [
-                (det.u.reshape(B) - cam.cu) / cam.fx,
-                (det.v.reshape(B) - cam.cv) / cam.fy,
-                1.0 / det.depth.reshape(B),
-                np.sin(psi),
-                np.cos(psi),
-            ]
-        )
-    feats[~detected] = 0.0
-    ref = references.reshape(B, 4)
-    return np.column_stack(
-        [
-            feats,
-            detected,
-            det.visible_fraction.reshape(B),
-            world_to_cam_vec(velocity, yaw),
-            -yaw_rate,
-            np.sin(yaw),
-            np.cos(yaw),
-            position[:, 2],
-            ref[:, :3],
-            np.sin(ref[:, 3]),
-            np.cos(ref[:, 3]),
-        ]
-    )
-
-
-def _neighbour_block(
-    cfg: EnvConfig, received: np.ndarray, pair: np.ndarray, position: np.ndarray, yaw: np.ndarray
-) -> np.ndarray:
-    """The nearest received neighbours (K, n, n_neighbours * 4), camera frame, zero-padded."""
-    K, n = yaw.shape
-    k = cfg.n_neighbours
-    d = np.where(received, pair, np.inf)
-    order = np.argsort(d, axis=-1, kind="stable")[..., :k]
-    world, me = np.arange(K)[:, None, None], np.arange(n)[None, :, None]
-    rel = position[world, order] - position[:, :, None]
-    mask = np.isfinite(d[world, me, order])
-    rel = world_to_cam_vec(rel, yaw[..., None]) * mask[..., None]
-    nb = np.concatenate([rel, mask[..., None]], -1)
-    if nb.shape[2] < k:
-        nb = np.concatenate([nb, np.zeros((K, n, k - nb.shape[2], NEIGHBOUR_FIELDS))], 2)
-    return nb.reshape(K, n, -1)
-
-
-def _obstacle_block(
-    cfg: EnvConfig,
-    clearance: np.ndarray,
-    position: np.ndarray,
-    yaw: np.ndarray,
-    obstacles: Obstacles,
-) -> np.ndarray:
-    """The nearest obstacles (K, n, n_obstacles_obs * 7), camera frame, zero-padded."""
-    K, n = yaw.shape
-    k, M = cfg.n_obstacles_obs, clearance.shape[-1]
-    order = np.argsort(clearance, axis=-1, kind="stable")[..., :k]
-    world = np.arange(K)[:, None, None]
-    rel = obstacles.centers[world, order] - position[:, :, None]
-    ob = np.concatenate(
-        [
-            world_to_cam_vec(rel, yaw[..., None]),
-            obstacles.half_extents[world, order],
-            np.ones(order.shape + (1,)),
-        ],
-        -1,
-    )
-    if obstacles.padded:
-        ob = np.where(obstacles.present[world, order][..., None], ob, 0.0)
-    if M < k:
-        ob = np.concatenate([ob, np.zeros((K, n, k - M, OBSTACLE_FIELDS))], 2)
-    return ob.reshape(K, n, -1)
+    position, yaw, velocity, yaw_rate = state
+    det, cam = m.detections, cfg.camera
+    return core_kernels.observation(
+        det.u, det.v, det.depth, det.psi, det.visible_fraction, det.detected, position, yaw,
+        velocity, yaw_rate, references, m.received, m.distances, m.obstacle_clearance,
+        obstacles.centers, obstacles.half_extents, obstacles.present,
+        np.array([cam.fx, cam.fy, cam.cu, cam.cv]), cfg.n_neighbours, cfg.n_obstacles_obs,
+        *bounds,
+    )  # fmt: skip

@@ -12,7 +12,7 @@ import numpy as np
 from .config import RewardConfig
 from .geometry import wrap_angle
 
-_FEATURE_ERROR_CAP = np.array([2.0, 2.0, 1.0, np.pi])
+FEATURE_ERROR_CAP = np.array([2.0, 2.0, 1.0, np.pi])
 """Caps on |e| so that a target at the image's edge or behind the camera gives a bounded reward."""
 
 
@@ -31,8 +31,8 @@ def tracking_term(
     cfg: RewardConfig,
 ) -> np.ndarray:
     """sum_k q_k e_k^2 (n,), capped per feature, plus ``lost_penalty`` when not detected."""
-    e = np.clip(feature_error(true_features, references), -_FEATURE_ERROR_CAP, _FEATURE_ERROR_CAP)
-    e[~in_front, :3] = _FEATURE_ERROR_CAP[:3]
+    e = np.clip(feature_error(true_features, references), -FEATURE_ERROR_CAP, FEATURE_ERROR_CAP)
+    e[~in_front, :3] = FEATURE_ERROR_CAP[:3]
     # Row-wise sums, not a matrix product: the same value whatever the batch (K worlds x n).
     return (e**2 * np.asarray(cfg.q)).sum(axis=-1) + cfg.lost_penalty * ~detected
 

@@ -10,13 +10,11 @@ generator. Everything is vectorised over the UAVs.
 from __future__ import annotations
 
 from dataclasses import dataclass, fields
-from typing import NamedTuple
 
 import numpy as np
 
-from . import broadphase
+from . import broadphase, core_kernels
 from .config import CameraConfig, CommsConfig, DetectorConfig
-from .geometry import relative_angle, wrap_angle
 from .target import CAR_HALF_EXTENTS
 from .world import World
 
@@ -94,17 +92,6 @@ class UAVSnapshot:
     """The detector's frame at this step (None before the first reset)."""
 
 
-class _Projection(NamedTuple):
-    """Target points in each UAV's camera frame (n, P) and their pixels (inf behind the camera)."""
-
-    X: np.ndarray
-    Y: np.ndarray
-    Z: np.ndarray
-    front: np.ndarray
-    pu: np.ndarray
-    pv: np.ndarray
-
-
 def _unit_grid(counts: tuple[int, int, int]) -> np.ndarray:
     axes = [np.linspace(-0.8, 0.8, k) if k > 1 else np.zeros(1) for k in counts]
     return np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
@@ -142,6 +129,17 @@ class Detector:
         # One transform for all points: the centre, the ray-cast samples, the 8 box corners.
         self._local = np.vstack([np.zeros((1, 3)), samples, _CORNER_SIGNS * CAR_HALF_EXTENTS])
         self._sample_radius = float(np.linalg.norm(samples, axis=1).max())
+        self._camera = np.array(
+            [camera.fx, camera.fy, camera.cu, camera.cv, camera.width, camera.height, camera.near],
+            float,
+        )
+        self._settings = np.array(
+            [
+                cfg.min_visible_fraction, cfg.dropout_prob, cfg.pixel_noise_std,
+                cfg.depth_noise_std, cfg.psi_noise_std, camera.near,
+            ],
+            float,
+        )  # fmt: skip
 
     def detect(
         self,
@@ -182,130 +180,59 @@ class Detector:
         may meet) only the rays whose answer `broadphase.known_rays` cannot prove go to
         PyBullet (None: all).
         Returns arrays (K, n, ...)."""
-        s = self._n_samples
         K, n = yaws.shape
-        points = _to_world(self._local, target_centers, target_yaws)  # (K, P, 3)
-        pos, yaw = positions.reshape(K * n, 3), yaws.reshape(K * n)
-        proj = self._project(points, positions, yaw)
-        z0 = np.where(np.abs(proj.Z[:, 0]) < 1e-9, 1e-9, proj.Z[:, 0])
-        psi = relative_angle(positions, target_centers[:, None], target_headings[:, None]).reshape(
-            K * n
-        )
-        true = np.column_stack([proj.X[:, 0] / z0, proj.Y[:, 0] / z0, 1.0 / z0, psi])
-        samples = points[:, 1 : 1 + s]
+        rows, true, box_center, flags, truncated, in_image, samples = core_kernels.detector_frame(
+            self._local, target_centers, target_yaws, target_headings, positions, yaws,
+            self._camera, self._n_samples,
+        )  # fmt: skip
         known = None
         if bodies is not None:
             known = broadphase.known_rays(
                 positions, target_centers, samples, self._sample_radius, _CAR_RADIUS, bodies
             )
-        visible, blocked = self._visibility(worlds, pos, samples, proj, known)
-        all_front, box_u, box_v, truncated = self._box(proj)
-        detected, noisy = self._measure(all_front, visible, box_u, box_v, proj.Z[:, 0], psi, rngs)
-        cam = self.camera
+        reach = self._reach(worlds, positions, samples, known)
+        # A fixed number of draws per frame keeps the random stream independent of outcomes;
+        # each world draws its noise, then its dropouts.
+        draws = [(rng.standard_normal((n, 4)), rng.random(n)) for rng in rngs]
+        noise = draws[0][0] if K == 1 else np.concatenate([d[0] for d in draws])
+        dropout = draws[0][1] if K == 1 else np.concatenate([d[1] for d in draws])
+        values, detected = core_kernels.detector_measure(
+            rows, flags[1], in_image, reach, noise, dropout, self._settings
+        )
         det = Detections(
             detected=detected,
-            u=noisy[0],
-            v=noisy[1],
-            depth=noisy[2],
-            psi=noisy[3],
-            visible_fraction=visible,
-            blocked_fraction=blocked,
+            u=values[0],
+            v=values[1],
+            depth=values[2],
+            psi=values[3],
+            visible_fraction=values[4],
+            blocked_fraction=values[5],
             truncated=truncated,
             true_features=true,
-            in_front=proj.front[:, 0],
-            box_center=np.column_stack(
-                [
-                    np.where(all_front, box_u, cam.fx * true[:, 0] + cam.cu),
-                    np.where(all_front, box_v, cam.fy * true[:, 1] + cam.cv),
-                ]
-            ),
+            in_front=flags[0],
+            box_center=box_center,
         )
         return det.batch(K, n)
 
-    def _project(self, points: np.ndarray, positions: np.ndarray, yaws: np.ndarray) -> _Projection:
-        """Camera-frame coordinates and pixels of each world's target points (K, P, 3) seen by
-        its UAVs (positions (K, n, 3), yaws (K n,)): arrays (K n, P)."""
-        cam = self.camera
-        K, n, P = len(points), positions.shape[1], points.shape[1]
-        d = (points[:, None] - positions[:, :, None]).reshape(K * n, P, 3)
-        c, sn = np.cos(yaws)[:, None], np.sin(yaws)[:, None]
-        X = sn * d[..., 0] - c * d[..., 1]  # camera frame, see geometry.world_to_cam_vec
-        Y = -d[..., 2]
-        Z = c * d[..., 0] + sn * d[..., 1]
-        front = Z > cam.near
-        Zs = np.where(front, Z, np.inf)
-        return _Projection(X, Y, Z, front, cam.fx * X / Zs + cam.cu, cam.fy * Y / Zs + cam.cv)
-
-    def _visibility(
+    def _reach(
         self,
         worlds: list[World],
         positions: np.ndarray,
         samples: np.ndarray,
-        proj: _Projection,
         known: np.ndarray | None,
-    ) -> tuple[np.ndarray, np.ndarray]:
-        """(visible, blocked) fractions (B,) of the sample points (K, s, 3) of K worlds: in the
-        image and reached by a ray; blocked = not reached (whatever the image bounds)."""
-        cam, s = self.camera, self._n_samples
-        K = len(worlds)
-        n = len(positions) // K
-        sp = slice(1, 1 + s)
-        pu, pv = proj.pu[:, sp], proj.pv[:, sp]
-        in_image = proj.front[:, sp] & (pu >= 0) & (pu < cam.width) & (pv >= 0) & (pv < cam.height)
+    ) -> np.ndarray:
+        """Whether each UAV's ray to each sample point (K, s, 3) reaches the car: (K n, s) bool.
+        The rays ``known`` (`broadphase.known_rays`) does not answer are cast in PyBullet."""
+        K, n = positions.shape[:2]
+        s = self._n_samples
         if known is None:
             reach, rays = np.zeros((K, n, s), bool), np.ones((K, n, s), bool)
         else:
             reach, rays = known == broadphase.REACHES, known == broadphase.UNKNOWN
-        starts = positions.reshape(K, n, 3)
         for k in np.flatnonzero(rays.any(axis=(1, 2))):
             i, j = np.nonzero(rays[k])  # this world's rays that go to PyBullet
-            reach[k, i, j] = worlds[k].rays_reach_target(starts[k, i], samples[k, j])
-        reach = reach.reshape(K * n, s)
-        return (in_image & reach).mean(axis=1), 1.0 - reach.mean(axis=1)
-
-    def _box(self, proj: _Projection) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """From the 8 projected corners: (all corners in front (n,), box centre u (n,), v (n,),
-        truncated by the image border (n, 2))."""
-        cam = self.camera
-        cs = slice(1 + self._n_samples, None)
-        pu, pv = proj.pu[:, cs], proj.pv[:, cs]
-        cu = np.clip(pu, 0.0, cam.width)
-        cv = np.clip(pv, 0.0, cam.height)
-        truncated = np.column_stack([(cu != pu).any(axis=1), (cv != pv).any(axis=1)])
-        box_u = 0.5 * (cu.min(axis=1) + cu.max(axis=1))
-        box_v = 0.5 * (cv.min(axis=1) + cv.max(axis=1))
-        return proj.front[:, cs].all(axis=1), box_u, box_v, truncated
-
-    def _measure(
-        self,
-        all_front: np.ndarray,
-        visible: np.ndarray,
-        box_u: np.ndarray,
-        box_v: np.ndarray,
-        depth: np.ndarray,
-        psi: np.ndarray,
-        rngs: list[np.random.Generator],
-    ) -> tuple[np.ndarray, tuple[np.ndarray, ...]]:
-        """Detected flags (B,) and the noisy (u, v, depth, psi), NaN where not detected; world
-        k's rows draw from ``rngs[k]``."""
-        cam, cfg = self.camera, self.cfg
-        B = len(all_front)
-        n = B // len(rngs)
-        # A fixed number of draws per frame keeps the random stream independent of outcomes;
-        # each world draws its noise, then its dropouts.
-        draws = [(rng.standard_normal((n, 4)), rng.random(n)) for rng in rngs]
-        noise = np.concatenate([d[0] for d in draws])
-        dropped = np.concatenate([d[1] for d in draws]) < cfg.dropout_prob
-        detected = all_front & (visible >= cfg.min_visible_fraction) & ~dropped
-        nan = np.full(B, np.nan)
-        return detected, (
-            np.where(detected, box_u + cfg.pixel_noise_std * noise[:, 0], nan),
-            np.where(detected, box_v + cfg.pixel_noise_std * noise[:, 1], nan),
-            np.where(
-                detected, np.maximum(depth + cfg.depth_noise_std * noise[:, 2], cam.near), nan
-            ),
-            np.where(detected, wrap_angle(psi + cfg.psi_noise_std * noise[:, 3]), nan),
-        )
+            reach[k, i, j] = worlds[k].rays_reach_target(positions[k, i], samples[k, j])
+        return reach.reshape(K * n, s)
 
 
 def receive_positions(
