@@ -95,7 +95,7 @@ def live_section(steps: int, repeats: int, seed: int) -> None:
             best = min(best, time.perf_counter() - t0)
         return best * 1e6
 
-    rows = [fastest(lambda f=f, c=c: f._rows(c)) for f, _u, c, _r in calls]
+    rows = [fastest(lambda f=f, c=c: f.row_builder(c)) for f, _u, c, _r in calls]
     certify = [
         fastest(lambda f=f, u=u, c=c, r=r: f.certify_trusted(u, c, r)) for f, u, c, r in calls
     ]

@@ -33,14 +33,16 @@ def test_a_kernel_is_cached_only_once_compiled(tmp_path, monkeypatch):
 
 
 def test_a_shielded_step_leaves_the_onboard_kernels_cached():
-    """After one shielded step every kernel `onboard_kernels` names is in numba's cache: the
-    list names kernels that step uses, and the runner's notice then stays silent."""
+    """After one shielded step and one UAV's own certification (the expert's) every kernel
+    `onboard_kernels` names is in numba's cache: the list names kernels those use, and the
+    runner's notice then stays silent."""
     from uavtrack_env import uavtrack_v0
     from uavtrack_env.wrappers import CBFShield
 
     env = CBFShield(uavtrack_v0.parallel_env(scenario="random", n_uavs=3, max_cycles=5))
     env.reset(seed=0)
     env.step({a: np.ones(4) for a in env.agents})
+    env.onboard["uav_0"].certify(np.full(4, 20.0))
     env.close()
     assert len(onboard_kernels()) == 5
     assert kernels_cached()

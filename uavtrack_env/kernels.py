@@ -11,15 +11,15 @@ from collections.abc import Iterable
 from typing import Any
 
 from .estimation.bank import _bank_step
-from .onboard import _take_and_believe
-from .safety.barrier_rows import all_rows
+from .onboard_pass import observe_pass
 from .safety.qp_arrays import nominal_holds
-from .safety.qp_layers import certify_changed
+from .safety.qp_layers import certify_changed, certify_many
 
 
 def onboard_kernels() -> list[Any]:
-    """The kernels an onboard stack's first step compiles (the shield's and the expert's)."""
-    return [_bank_step, _take_and_believe, all_rows, nominal_holds, certify_changed]
+    """The kernels an onboard stack's first step compiles (the shield's team certification and
+    the expert's per-UAV one)."""
+    return [_bank_step, observe_pass, certify_many, nominal_holds, certify_changed]
 
 
 def kernels_cached(kernels: Iterable[Any] | None = None) -> bool:

@@ -14,18 +14,26 @@ cut by the image border, and growing while the car is undetected (`car_box`, `Sh
 from __future__ import annotations
 
 import dataclasses
-import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import NamedTuple
 
-import numba
 import numpy as np
 
 from .config import DT, CameraConfig, EnvConfig
 from .estimation import Estimate, Measurement, TargetEstimator, UKFConfig
 from .estimation.bank import TrackerBank
 from .geometry import world_to_cam_vec
+from .onboard_pass import (
+    BOX_COLUMNS,
+    TeamState,
+    believe,
+    car_box_arrays,
+    max_rows,
+    observe_pass,
+    take_and_believe,
+    take_messages,
+)
 from .presets import ExpertConfig
 from .safety import (
     CBFRows,
@@ -35,6 +43,7 @@ from .safety import (
     ShieldReport,
     shield_cbf,
 )
+from .safety.barrier_rows import N_FAMILIES
 from .scenarios import Layout
 from .target import CAR_HALF_EXTENTS
 
@@ -69,12 +78,19 @@ class OnboardTracker:
             self.bank.forget(self.slot)
 
 
-def update_trackers(trackers: Sequence[OnboardTracker], infos: Sequence[dict]) -> list:
+def update_trackers(
+    trackers: Sequence[OnboardTracker],
+    infos: Sequence[dict],
+    inputs: Sequence[tuple] | None = None,
+) -> list:
     """Advance each UAV's filter with its info (measurement and own motion): the trackers of one
     `TrackerBank` in one compiled call, plain-filterpy trackers one by one; returns each
-    tracker's estimate (None until its first detection)."""
+    tracker's estimate (None until its first detection). ``inputs``: the infos' `_input_row`s,
+    if the caller has them."""
+    if inputs is None:
+        inputs = [_input_row(info) for info in infos]
     groups: dict[int, tuple[TrackerBank, list[OnboardTracker], list[tuple]]] = {}
-    for tracker, info in zip(trackers, infos, strict=True):
+    for tracker, info, row in zip(trackers, infos, inputs, strict=True):
         bank = tracker.bank
         if bank is None:
             _step_alone(tracker, info)
@@ -83,7 +99,7 @@ def update_trackers(trackers: Sequence[OnboardTracker], infos: Sequence[dict]) -
         if group is None:
             group = groups[id(bank)] = (bank, [], [])
         group[1].append(tracker)
-        group[2].append(_input_row(info))
+        group[2].append(row)
     for bank, members, rows in groups.values():
         bank.step([t.slot for t in members], np.array(rows, float))
         estimates = bank.estimates
@@ -178,6 +194,14 @@ class NeighbourTable:
         self._vel_err = np.zeros(0)
         self._age = np.zeros(0, int)
         self._known = np.zeros(0, bool)
+        self._bound = False
+
+    def bind(self, p: np.ndarray, v: np.ndarray, v_err: np.ndarray, age: np.ndarray,
+             known: np.ndarray) -> None:  # fmt: skip
+        """Keep the table in these arrays (a `TeamState` slot's: (k, 3), (k, 3), (k,), (k,)
+        int64, (k,) bool), which `reset` fills in place."""
+        self._pos, self._vel, self._vel_err, self._age, self._known = p, v, v_err, age, known
+        self._bound = True
 
     def reset(self, names: list[str], positions: np.ndarray, own: str, r_c: float) -> None:
         """A new episode: the team ``names`` at ``positions`` (n, 3); ``own`` is this UAV."""
@@ -188,28 +212,41 @@ class NeighbourTable:
         self._ids = keep
         self._index = {a: k for k, a in enumerate(self._names)}
         self._all = (tuple(self._names), tuple(keep))
-        self._pos = positions[keep].copy()
-        self._vel = np.zeros_like(self._pos)
-        self._vel_err = np.zeros(len(keep))
-        self._age = np.zeros(len(keep), int)
-        self._known = np.linalg.norm(self._pos - positions[me], axis=1) <= r_c
+        if not self._bound:
+            k = len(keep)
+            self._pos, self._vel = np.zeros((k, 3)), np.zeros((k, 3))
+            self._vel_err, self._age = np.zeros(k), np.zeros(k, np.int64)
+            self._known = np.zeros(k, bool)
+        elif len(self._age) != len(keep):
+            raise ValueError(
+                f"this table holds {len(self._age)} team-mates, the team {names} has {len(keep)}"
+            )
+        self._pos[:] = positions[keep]
+        self._vel[:] = 0.0
+        self._vel_err[:] = 0.0
+        self._age[:] = 0
+        self._known[:] = np.linalg.norm(self._pos - positions[me], axis=1) <= r_c
+
+    def index(self, name: str) -> int | None:
+        """The table's index of team-mate ``name`` (None: not a team-mate)."""
+        return self._index.get(name)
 
     def update(self, messages: dict[str, np.ndarray]) -> None:
         """Take this step's messages (team-mate -> position); the others age by one step."""
-        _take_messages(*self._messages(messages), *self._state(), self.timeout)
+        take_messages(*self._messages(messages), *self._state(), self.timeout)
 
     def take(self, messages: dict[str, np.ndarray]) -> NeighbourBelief:
         """`update` with this step's messages, then the `belief` (one compiled call)."""
-        return self._wrap(
-            _take_and_believe(
+        return self.wrap(
+            take_and_believe(
                 *self._messages(messages), *self._state(), self.timeout, self._believe_accel
             )
         )
 
     def belief(self) -> NeighbourBelief:
         """The known team-mates now."""
-        return self._wrap(
-            _believe(
+        return self.wrap(
+            believe(
                 self._known,
                 self._pos,
                 self._vel,
@@ -238,8 +275,8 @@ class NeighbourTable:
             self.accel_bound or 0.0, self.speed_bound,
         )  # fmt: skip
 
-    def _wrap(self, believed: tuple) -> NeighbourBelief:
-        """A `NeighbourBelief` from `_believe`'s arrays."""
+    def wrap(self, believed: tuple) -> NeighbourBelief:
+        """A `NeighbourBelief` from `onboard_pass.believe`'s arrays."""
         (k, ages), (pos, vel), (radius, vel_radius) = believed
         if len(k) == len(self._names):
             names, ids = self._all
@@ -258,64 +295,6 @@ class NeighbourTable:
 _NO_POSITIONS = np.zeros((0, 3))
 
 
-@numba.njit(cache=True)
-def _take_messages(
-    ks, pos, p, v, v_err, age, known, dt, accel, speed, timeout
-):  # pragma: no cover (compiled)
-    """`NeighbourTable.update` on its arrays, in place: messages ``pos[i]`` from team-mate
-    ``ks[i]``."""
-    for j in range(age.shape[0]):
-        age[j] += 1
-    for i in range(ks.shape[0]):
-        k = ks[i]
-        if known[k]:
-            gap = age[k]
-            for a in range(3):
-                v[k, a] = (pos[i, a] - p[k, a]) / (gap * dt)
-            v_err[k] = 0.5 * accel * (gap - 1) * dt
-        else:  # first heard: its velocity is unknown within the speed bound
-            for a in range(3):
-                v[k, a] = 0.0
-            v_err[k] = speed
-        for a in range(3):
-            p[k, a] = pos[i, a]
-        age[k] = 0
-        known[k] = True
-    for j in range(age.shape[0]):
-        known[j] = known[j] and age[j] < timeout
-
-
-@numba.njit(cache=True)
-def _believe(known, p, v, v_err, age, dt, speed, accel):  # pragma: no cover (compiled)
-    """`NeighbourTable.belief`'s arrays for the ``known`` team-mates (``accel`` < 0: none), in
-    three blocks (each array returned to Python costs ~0.5 us): [indices, ages] (2, m),
-    [positions, velocities] (2, m, 3) and [position radii, velocity radii] (2, m)."""
-    ks = np.flatnonzero(known)
-    m = ks.shape[0]
-    ints = np.empty((2, m), np.int64)
-    motion = np.empty((2, m, 3))
-    radii = np.zeros((2, m))
-    pos, vel, radius, vel_radius = motion[0], motion[1], radii[0], radii[1]
-    for i in range(m):
-        k = ks[i]
-        ints[0, i], ints[1, i] = k, age[k]
-        t = age[k] * dt
-        for a in range(3):
-            vel[i, a] = v[k, a]
-            pos[i, a] = p[k, a]
-        radius[i] = speed * t
-        if accel >= 0.0:
-            err = v_err[k]
-            s = math.sqrt(v[k, 0] * v[k, 0] + v[k, 1] * v[k, 1] + v[k, 2] * v[k, 2])
-            # forward Euler, p(k+1) = p(k) + v(k+1) dt: the drift is a sum, not an integral
-            propagated = 0.5 * accel * t * (t + dt) + err * t
-            radius[i] = min((speed + s) * t, propagated)
-            for a in range(3):
-                pos[i, a] = p[k, a] + v[k, a] * t
-            vel_radius[i] = min(err + accel * t, 2.0 * speed)
-    return ints, motion, radii
-
-
 class OnboardAgent:
     """One UAV's onboard stack (UKF, team-mates' messages, known map, CBF-QP (47)).
 
@@ -325,6 +304,10 @@ class OnboardAgent:
     config's margins; under the env's 'lag' dynamics and ``lag_aware`` the rows are second order
     and respect the acceleration bound (`ShieldOptions.lag_tau` = ``dynamics.tau``,
     ``accel_bound`` = ``dynamics.a_max``). What this guarantees: docs/safety.md.
+
+    What the agent remembers between steps lives in slot ``slot`` of ``team`` (a `TeamState`
+    its team shares, `onboard_team`; None: one of its own), so that `observe_team` takes a
+    whole team's step in one compiled pass (`onboard_pass.observe_pass`).
     """
 
     def __init__(
@@ -334,6 +317,8 @@ class OnboardAgent:
         env_config: EnvConfig,
         config: ExpertConfig,
         tracker: OnboardTracker | None = None,
+        team: TeamState | None = None,
+        slot: int | None = None,
     ) -> None:
         self.name, self.index, self.config = name, index, config
         margins = config.margins
@@ -362,67 +347,132 @@ class OnboardAgent:
         )
         self._r_c = env_config.comms.r_c
         fastest = max(0.5, env_config.random_world.target_speed[1])  # Fig. 11: 0.5 m/s
-        self._car_speed = fastest if margins.target_speed_max is None else margins.target_speed_max
-        self._anchor: Estimate | None = None
-        """The last estimate trusted as the car's box: the reachable set grows from it
-        (`car_box`)."""
+        self._car_speed = car_speed = (
+            fastest if margins.target_speed_max is None else margins.target_speed_max
+        )
         self._recovery = round(margins.truncation_recovery / DT)
-        self._uncut = [self._recovery] * 2
-        """Detections since the last box cut by the image border in u and in v."""
-        self._cut_steps = [0, 0]
-        """Steps since each axis's spell of cut boxes began (0: none)."""
+        table = self.neighbours
+        self._pass_params = (
+            np.array((DT, table.accel_bound or 0.0, table.speed_bound, table.timeout,
+                      table._believe_accel)),
+            np.array((margins.target_margin, margins.target_sigmas, margins.target_margin_max,
+                      margins.target_stale_after, margins.car_on_ground, car_speed, DT,
+                      self._recovery, margins.truncated_box_pad)),
+            *self.filter.row_builder.pass_params(),
+        )  # fmt: skip
+        """`observe_pass`'s table_p, box_p, row_p, flags, gammas and margins."""
+        self.team, self.slot = team, index if slot is None else slot
+        if team is not None:
+            self._bind()
         self.obstacle_centers = np.zeros((0, 3))
         self.obstacle_half_extents = np.zeros((0, 3))
         self.info: dict | None = None
-        self.belief: NeighbourBelief | None = None
+        self._seen: tuple | None = None
+        """The last `observe_pass`'s outputs and this agent's row in them."""
+        self._belief: NeighbourBelief | None = None
         self._context: SafetyContext | None = None
         self._rows: CBFRows | None = None
+
+    def _bind(self) -> None:
+        team, s = self.team, self.slot
+        self.neighbours.bind(team.nb_p[s], team.nb_v[s], team.nb_err[s], team.nb_age[s],
+                             team.nb_known[s])  # fmt: skip
 
     @property
     def estimate(self) -> Estimate | None:
         """The UKF's target estimate (None until the car was first detected)."""
         return self.tracker.estimate
 
+    @property
+    def belief(self) -> NeighbourBelief | None:
+        """The team-mates as believed at the latest observation (None before one)."""
+        if self._belief is None and self._seen is not None:
+            out, j = self._seen
+            bi, bf = out[5][j], out[6][j]
+            k = int(bi[0])
+            motion, radii = bf[: 6 * k].reshape(2, k, 3), bf[6 * k : 8 * k].reshape(2, k)
+            self._belief = self.neighbours.wrap((bi[1 : 1 + 2 * k].reshape(2, k), motion, radii))
+        return self._belief
+
     def reset(self, layout: Layout, agents: list[str]) -> None:
         """A new episode on ``layout`` (its known obstacle map); ``agents`` names the team in
         index order. Forgets the estimate and the neighbours' histories."""
+        if self.team is None or self.team.n != len(agents):
+            if self.team is not None and self.team.worlds * self.team.n > 1:
+                raise ValueError(
+                    f"{self.name}: its team state holds teams of {self.team.n}, got {agents}"
+                )
+            self.team, self.slot = TeamState(len(agents)), agents.index(self.name)
+            self._bind()
         self.obstacle_centers = np.asarray(layout.obstacle_centers, float).reshape(-1, 3)
         self.obstacle_half_extents = np.asarray(layout.obstacle_half_extents, float).reshape(-1, 3)
+        team, s = self.team, self.slot
+        team.set_map(s // team.n, self.obstacle_centers, self.obstacle_half_extents)
+        team.uncut[s], team.cut_steps[s], team.has_anchor[s] = self._recovery, 0, False
         self.tracker.reset()
-        self._anchor = None
-        self._uncut = [self._recovery] * 2
-        self._cut_steps = [0, 0]
         self.neighbours.reset(agents, layout.uav_positions, self.name, self._r_c)
-        self.info, self.belief, self._context, self._rows = None, None, None, None
+        self.info, self._seen = None, None
+        self._belief, self._context, self._rows = None, None, None
 
     def observe(self, info: dict) -> Estimate | None:
         """Take this step's ``info`` (measurement, own state, messages); returns the estimate."""
         observe_team([self], [info])
         return self.tracker.estimate
 
-    def _take(self, info: dict) -> None:
-        """The messages, the cut-box spells and the safety context of ``info`` (the tracker has
-        taken it)."""
-        m, full = info["measurement"], self._recovery
-        uncut, steps = self._uncut, self._cut_steps
-        for axis, key in enumerate(("truncated_u", "truncated_v")):
-            if m["detected"]:
-                uncut[axis] = 0 if m[key] else min(uncut[axis] + 1, full)
-            steps[axis] = steps[axis] + 1 if uncut[axis] < full else 0
-        self.belief = self.neighbours.take(info["neighbours"])
-        self.info, self._rows = info, None
-        self._context = self._make_context(info, self.belief)
-
     def context(self) -> SafetyContext:
-        """The CBF-QP's view of the latest observation."""
+        """The CBF-QP's view of the latest observation: own pose and velocity, the team-mates
+        as believed (and, for second-order rows, their velocities), the known obstacles, the
+        car's box (`car_box`)."""
         if self._context is None:
-            raise RuntimeError(f"{self.name}: no observation yet; call observe(info) after reset")
+            if self._seen is None:
+                raise RuntimeError(
+                    f"{self.name}: no observation yet; call observe(info) after reset"
+                )
+            out, j = self._seen
+            belief, own, box = self.belief, self.info["own"], out[7][j]
+            if self.tracker.estimate is None:  # no estimate: no target rows
+                target: dict = {
+                    "target_velocity": np.zeros(3),
+                    "target_half_extents": np.array(CAR_HALF_EXTENTS, float),
+                    "target_heading": 0.0,
+                }
+            else:
+                target = {
+                    "target_position": box[0:3],
+                    "target_velocity": box[3:6],
+                    "target_half_extents": box[6:9],
+                    "target_heading": 0.0,
+                    "target_growth": box[9:12],
+                    "target_frustum": bool(box[12]),
+                }
+            # The env's own arrays, already float64 and finite: no re-validation.
+            self._context = SafetyContext.trusted(
+                position=own["position"],
+                yaw=float(own["yaw"]),
+                velocity=own["velocity"],
+                neighbours=belief.positions,
+                neighbour_velocities=belief.velocities if self._lag else None,
+                neighbour_radius=belief.position_radius,
+                neighbour_velocity_radius=belief.velocity_radius if self._lag else None,
+                obstacle_centers=self.obstacle_centers,
+                obstacle_half_extents=self.obstacle_half_extents,
+                neighbour_ids=belief.ids,
+                **target,
+            )
         return self._context
 
     def rows(self) -> CBFRows:
-        """The CBF rows of the latest observation (built once per observation)."""
+        """The CBF rows of the latest observation (`observe_pass` built them; equal to
+        ``self.filter.rows(self.context())``)."""
         if self._rows is None:
-            self._rows = self.filter.rows(self.context())
+            if self._seen is None:
+                self.context()  # raises: no observation yet
+            out, j = self._seen
+            A, floats, ints, start, sizes = out[:5]
+            a, b = start[j], start[j + 1]
+            builder = self.filter.row_builder
+            ctx = self.context() if builder.lag_tau > 0.0 else None
+            self._rows = builder.stack(A[a:b], floats[:, a:b], ints[:, a:b], sizes[j], ctx)
         return self._rows
 
     def certify(self, u_nominal: np.ndarray) -> tuple[np.ndarray, ShieldReport]:
@@ -431,91 +481,114 @@ class OnboardAgent:
 
     def certify_trusted(self, u: np.ndarray) -> tuple[np.ndarray, ShieldReport]:
         """`certify` without checks (`SafetyFilter.certify_trusted`)."""
-        return self.filter.certify_trusted(u, self.context(), self.rows())
-
-    def _make_context(self, info: dict, belief: NeighbourBelief) -> SafetyContext:
-        """The CBF-QP's view: own pose and velocity, the team-mates as believed (and, for
-        second-order rows, their velocities), the known obstacles, the car's estimate."""
-        own, est = info["own"], self.tracker.estimate
-        if est is None:  # no estimate: no target rows (SafetyContext's defaults)
-            target: dict = {
-                "target_velocity": np.zeros(3),
-                "target_half_extents": np.array(CAR_HALF_EXTENTS, float),
-                "target_heading": 0.0,
-            }
-        else:
-            margins = self.config.margins
-            cut_time = (
-                (self._cut_steps[0] * DT, self._cut_steps[1] * DT)
-                if margins.truncated_box_pad
-                else (0.0, 0.0)
-            )
-            box = car_box(est, margins, self._car_speed, cut_time, self._anchor)
-            if not box.stale:
-                self._anchor = est
-            target = {
-                "target_position": box.center,
-                "target_velocity": box.velocity,
-                "target_half_extents": box.half,
-                "target_heading": 0.0,
-                "target_growth": box.growth,
-                "target_frustum": box.stale,
-            }
-        # The env's own arrays, already float64 and finite: no re-validation.
-        return SafetyContext.trusted(
-            position=own["position"],
-            yaw=float(own["yaw"]),
-            velocity=own["velocity"],
-            neighbours=belief.positions,
-            neighbour_velocities=belief.velocities if self._lag else None,
-            neighbour_radius=belief.position_radius,
-            neighbour_velocity_radius=belief.velocity_radius if self._lag else None,
-            obstacle_centers=self.obstacle_centers,
-            obstacle_half_extents=self.obstacle_half_extents,
-            neighbour_ids=belief.ids,
-            **target,
+        rows, own = self.rows(), self.info["own"]
+        return self.filter.certify_pose(
+            u, float(own["yaw"]), own["velocity"], rows, self.neighbour_ids()
         )
 
+    def neighbour_ids(self) -> tuple[int, ...]:
+        """The team indices of the team-mates believed at the latest observation (they name
+        the rows: 'uav:<id>')."""
+        bi = self._seen[0][5][self._seen[1]] if self._seen is not None else None
+        if bi is not None and int(bi[0]) == len(self.neighbours._all[1]):
+            return self.neighbours._all[1]
+        return self.belief.ids
 
-@numba.njit(cache=True)
-def _take_and_believe(
-    ks, pos, p, v, v_err, age, known, dt, accel, speed, timeout, believe_accel
-):  # pragma: no cover (compiled)
-    """`_take_messages`, then `_believe`: one step of `NeighbourTable.take`."""
-    _take_messages(ks, pos, p, v, v_err, age, known, dt, accel, speed, timeout)
-    return _believe(known, p, v, v_err, age, dt, speed, believe_accel)
+
+def certify_team(
+    agents: Sequence[OnboardAgent], u: np.ndarray
+) -> tuple[np.ndarray, list[ShieldReport]]:
+    """`OnboardAgent.certify_trusted` of ``u[j]`` (m, 4) for each of m agents with one
+    configuration (`SafetyFilter.certify_many`: one compiled call)."""
+    own = [agent.info["own"] for agent in agents]
+    return agents[0].filter.certify_many(
+        u,
+        np.array([o["yaw"] for o in own], float),
+        np.array([o["velocity"] for o in own], float).reshape(-1, 3),
+        [agent.rows() for agent in agents],
+        [agent.neighbour_ids() for agent in agents],
+    )
 
 
 def onboard_team(
     names: Sequence[str], env_config: EnvConfig, config: ExpertConfig, worlds: int = 1
 ) -> list[list[OnboardAgent]]:
     """The onboard stacks of ``worlds`` teams ``names`` (one list per world), their target
-    filters in one `TrackerBank` (`observe_team` steps them in one compiled call)."""
+    filters in one `TrackerBank` and their memories in one `TeamState` (`observe_team` steps
+    them in two compiled calls)."""
     n, camera, ukf = len(names), env_config.camera, config.ukf
     bank = TrackerBank(n * worlds, camera, ukf) if ukf.vectorized else None
+    team = TeamState(n, worlds)
     return [
         [
-            OnboardAgent(a, i, env_config, config, OnboardTracker(camera, ukf, bank, k * n + i))
+            OnboardAgent(a, i, env_config, config, OnboardTracker(camera, ukf, bank, s), team, s)
             for i, a in enumerate(names)
+            for s in (k * n + i,)
         ]
         for k in range(worlds)
     ]
 
 
 def observe_team(agents: Sequence[OnboardAgent], infos: Sequence[dict], rows: bool = False) -> None:
-    """`OnboardAgent.observe` for several UAVs of one team, their UKFs in one batched pass.
-    ``rows``: build each agent's CBF rows now, while its context is in the CPU's caches (a
-    shield certifies every agent at its next step)."""
-    update_trackers([a.tracker for a in agents], infos)
-    for agent, info in zip(agents, infos, strict=True):
-        agent._take(info)
-        if rows:
+    """`OnboardAgent.observe` for several UAVs: their UKFs in one batched pass, then everything
+    else they take from the step (messages, cut boxes, the car's box, the CBF rows) in one
+    `observe_pass` per `TeamState`. ``rows``: wrap each agent's rows now (a shield certifies
+    every agent at its next step)."""
+    inputs = [_input_row(info) for info in infos]
+    update_trackers([a.tracker for a in agents], infos, inputs)
+    groups: dict[int, list[int]] = {}
+    for j, agent in enumerate(agents):
+        groups.setdefault(id(agent.team), []).append(j)
+    for members in groups.values():
+        _observe_pass([agents[j] for j in members], [infos[j] for j in members],
+                      [inputs[j] for j in members])  # fmt: skip
+    if rows:
+        for agent in agents:
             agent.rows()
 
 
-_CAR_DIAG = math.hypot(*CAR_HALF_EXTENTS[:2].tolist())
-"""The car footprint's half diagonal (m)."""
-_CAR_HALF_HEIGHT = float(CAR_HALF_EXTENTS[2])
+def _observe_pass(agents: list[OnboardAgent], infos: list[dict], inputs: list[tuple]) -> None:
+    """`observe_pass` for UAVs of one `TeamState` whose trackers have taken the step."""
+    team, m = agents[0].team, len(agents)
+    slots = np.array([a.slot for a in agents], np.int64)
+    msg_start, ks, heard = np.zeros(m + 1, np.int64), [], []
+    estimates = []
+    for j, (agent, info) in enumerate(zip(agents, infos, strict=True)):
+        index = agent.neighbours._index
+        for name, pos in info["neighbours"].items():
+            k = index.get(name)
+            if k is not None:
+                ks.append(k)
+                heard.append(pos)
+        msg_start[j + 1] = len(ks)
+        est = agent.tracker.estimate
+        if est is None:
+            estimates.append(_NO_ESTIMATE)
+        else:
+            P = est.covariance
+            estimates.append((1.0, *est.target_position.tolist(), *est.target_velocity.tolist(),
+                              P[4, 4], P[5, 5], P[6, 6], est.steps_since_detection))  # fmt: skip
+    est = np.array(estimates)
+    mates, rows = team.n - 1, m * max_rows(team.n - 1, team.obs_c.shape[1])
+    out = (
+        np.empty((rows, 3)), np.empty((5, rows)), np.empty((2, rows), np.int64),
+        np.empty(m + 1, np.int64), np.zeros((m, N_FAMILIES + 1), np.int64),
+        np.zeros((m, 1 + 2 * mates), np.int64), np.zeros((m, 8 * mates)),
+        np.empty((m, BOX_COLUMNS)),
+    )  # fmt: skip
+    observe_pass(
+        slots, slots // team.n, np.array(inputs, float), msg_start, np.array(ks, np.int64),
+        np.array(heard, float) if heard else _NO_POSITIONS, est[:, 0] > 0.5, est[:, 1:4],
+        est[:, 4:7], est[:, 7:10], est[:, 10].astype(np.int64), team.nb_p, team.nb_v,
+        team.nb_err, team.nb_age, team.nb_known, team.uncut, team.cut_steps, team.anchor,
+        team.has_anchor, team.obs_c, team.obs_h, team.obs_n, *agents[0]._pass_params, *out,
+    )  # fmt: skip
+    for j, (agent, info) in enumerate(zip(agents, infos, strict=True)):
+        agent.info, agent._seen = info, (out, j)
+        agent._belief, agent._context, agent._rows = None, None, None
+
+
+_NO_ESTIMATE = (0.0,) * 11
 
 
 class CarBox(NamedTuple):
@@ -568,35 +641,18 @@ def car_box(
     exact vertical extent while tracked: the box reaches from the ground (or below) to the car's
     height plus ``target_margin``, whatever the estimated height.
     """
-    diag, c = _CAR_DIAG, _CAR_HALF_HEIGHT
-    stale = est.steps_since_detection * DT - margins.target_stale_after
-    ref = est if stale <= 0.0 or anchor is None else anchor
-    P = ref.covariance
-    sigma_p = math.sqrt(max(P[4, 4], P[5, 5], P[6, 6], 0.0))
-    pad = min(margins.target_margin + margins.target_sigmas * sigma_p, margins.target_margin_max)
-    hxy, hz = diag + pad, c + pad
-    g_xy = g_z = 0.0
-    t_u, t_v = cut_time
-    bias_speed = 2.0 * car_speed
-    if t_u > 0.0:
-        hxy += min(bias_speed * t_u, diag)
-        g_xy += bias_speed if bias_speed * t_u < diag else 0.0
-    if t_v > 0.0:
-        hz += min(bias_speed * t_v, c)
-        g_z += bias_speed if bias_speed * t_v < c else 0.0
-    center = ref.target_position
-    if margins.car_on_ground:  # the box spans [<= 0, the car's height + target_margin]
-        top, z = 2.0 * c + margins.target_margin, float(center[2])
-        hz, g_z = max(top - z, z), 0.0
-    if stale > 0.0:  # the reachable set from the anchor, its top included
-        hxy += car_speed * stale
-        hz += car_speed * stale
-        g_xy += car_speed
-        g_z += car_speed
-    velocity = _ZEROS3 if stale > 0.0 else est.target_velocity
-    return CarBox(
-        center, velocity, np.array((hxy, hxy, hz)), np.array((g_xy, g_xy, g_z)), stale > 0.0
-    )
-
-
-_ZEROS3 = np.zeros(3)
+    out = np.empty(BOX_COLUMNS)
+    P = est.covariance
+    has_anchor = anchor is not None
+    A = anchor.covariance if has_anchor else P
+    params = np.array(
+        (margins.target_margin, margins.target_sigmas, margins.target_margin_max,
+         margins.target_stale_after, margins.car_on_ground, car_speed, DT)
+    )  # fmt: skip
+    car_box_arrays(
+        est.target_position, est.target_velocity, np.array((P[4, 4], P[5, 5], P[6, 6])),
+        est.steps_since_detection, (anchor if has_anchor else est).target_position,
+        np.array((A[4, 4], A[5, 5], A[6, 6])), has_anchor, float(cut_time[0]),
+        float(cut_time[1]), params, out,
+    )  # fmt: skip
+    return CarBox(out[0:3], out[3:6], out[6:9], out[9:12], bool(out[12]))

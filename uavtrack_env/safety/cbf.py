@@ -387,11 +387,37 @@ class RowBuilder:
             self._gammas,
             self._margins,
         )
+        return self.stack(A, floats, ints, sizes, ctx)
+
+    def stack(
+        self,
+        A: np.ndarray,
+        floats: np.ndarray,
+        ints: np.ndarray,
+        sizes: np.ndarray,
+        ctx: SafetyContext | None,
+    ) -> CBFRows:
+        """The `CBFRows` of `all_rows`'s output (A, [b, h, gamma, drift, margin], [kind, index],
+        sizes) for ``ctx``, which only second-order rows (``lag_tau`` > 0) read."""
         b, h, gamma, drift, margin = floats
         kind, index = ints
         if self.lag_tau > 0.0:
             b = self._second_order(ctx, A, h, b, margin, kind, index, sizes)
         return CBFRows(A, b, h, gamma, drift, margin, kind, index)
+
+    def pass_params(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """`onboard_pass.observe_pass`'s ``row_p``, ``flags``, ``gammas`` and ``margins``: the
+        arguments `__call__` gives `all_rows` that do not depend on the context."""
+        cbf = self.cbf
+        row_p = np.array(
+            (cbf.d_s, cbf.r_s, cbf.r_c, cbf.alpha_v, cbf.obstacle_clearance, cbf.z_min,
+             self._theta_star, self._point_mode)
+        )  # fmt: skip
+        flags = np.array(
+            (self.obstacle_model == "box", self.target_as_obstacle, self.occlusion,
+             cbf.occlusion_model == "moving-target", cbf.occlusion_size_margin)
+        )  # fmt: skip
+        return row_p, flags, self._gammas, self._margins
 
     def _second_order(
         self,

@@ -15,7 +15,14 @@ import numpy as np
 
 from uavtrack_env.safety.cbf import CONNECT, OCCLUSION, TARGET, UAV
 from uavtrack_env.safety.daqp_native import quadprog
-from uavtrack_env.safety.qp_arrays import meets, outcome, qp_problem, triage, with_cut
+from uavtrack_env.safety.qp_arrays import (
+    meets,
+    nominal_holds,
+    outcome,
+    qp_problem,
+    triage,
+    with_cut,
+)
 
 LAYER_STATUS = ("optimal", "relaxed", "fallback", "brake")
 """`solve_layers`'s status codes."""
@@ -170,3 +177,36 @@ def certify_changed(
         out[j] = kept[over_hard[i]]
         j += 1
     return out
+
+
+@numba.njit(cache=True)
+def certify_many(
+    u, yaw, velocity, A, b, kind, start, lb3, ub3, params, settings
+):  # pragma: no cover (compiled)
+    """`qp_arrays.nominal_holds`, then `certify_changed` where it fails, for m UAVs at once:
+    UAV j's command ``u[j]``, yaw, actual velocity and rows ``A/b/kind[start[j]:start[j + 1]]``.
+    Returns (changed (m,), outputs (m, width)): row j is `certify_changed`'s packed output, or
+    ``u[j]`` alone where the nominal holds."""
+    m = u.shape[0]
+    width = OUT_HEAD
+    for j in range(m):
+        width = max(width, OUT_HEAD + 4 * (start[j + 1] - start[j]))
+    changed = np.zeros(m, np.bool_)
+    outs = np.zeros((m, width))
+    alpha_v, v_max, w_max = params[P_ALPHA_V], params[P_V_MAX], params[P_W_MAX]
+    tol, accel_step = params[P_TOL], params[P_ACCEL_STEP]
+    for j in range(m):
+        a, e = start[j], start[j + 1]
+        if nominal_holds(
+            u[j], yaw[j], velocity[j], True, A[a:e], b[a:e], alpha_v, v_max, w_max, tol,
+            accel_step, lb3, ub3,
+        ):  # fmt: skip
+            outs[j, :4] = u[j]
+            continue
+        out = certify_changed(
+            u[j], yaw[j], velocity[j], True, A[a:e], b[a:e], kind[a:e], lb3, ub3, params,
+            settings,
+        )  # fmt: skip
+        outs[j, : out.shape[0]] = out
+        changed[j] = True
+    return changed, outs

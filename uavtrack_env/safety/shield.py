@@ -81,7 +81,7 @@ from uavtrack_env.safety.qp_arrays import (
     triage,
     with_cut,
 )
-from uavtrack_env.safety.qp_layers import LAYER_STATUS, OUT_HEAD, certify_changed
+from uavtrack_env.safety.qp_layers import LAYER_STATUS, OUT_HEAD, certify_changed, certify_many
 from uavtrack_env.validation import Fields as _Fields
 
 SOLVERS = ("daqp", "proxqp", "daqp-direct")
@@ -276,7 +276,7 @@ class SafetyFilter:
             self._bounds_code = 1  # the box inside the ball
         else:
             self._bounds_code = 2
-        self._rows = RowBuilder(
+        self.row_builder = RowBuilder(
             cbf,
             obstacle_model=self.options.obstacle_model,
             connectivity_margin=self.connectivity_margin,
@@ -315,7 +315,7 @@ class SafetyFilter:
         """The CBF rows ``A V^g <= b`` of this context (global frame), as `certify` uses them."""
         if not isinstance(ctx, SafetyContext):
             raise ValueError(f"ctx must be a SafetyContext, got {type(ctx).__name__}")
-        return self._rows(ctx)
+        return self.row_builder(ctx)
 
     def camera_rows(self, rows: CBFRows, yaw: float, k: int) -> tuple[np.ndarray, np.ndarray]:
         """Up to ``k`` rows as unit half-spaces ``a_c v_c <= b`` on the camera-frame velocity,
@@ -339,36 +339,94 @@ class SafetyFilter:
         """
         t0 = time.perf_counter()
         u = _checked_nominal(u_nominal, ctx)
-        return self._certify(u, ctx, self._rows(ctx) if rows is None else rows, t0)
+        rows = self.row_builder(ctx) if rows is None else rows
+        return self._certify(u, ctx.yaw, ctx.velocity, rows, ctx.neighbour_ids, t0)
 
     def certify_trusted(
         self, u: np.ndarray, ctx: SafetyContext, rows: CBFRows
     ) -> tuple[np.ndarray, ShieldReport]:
         """`certify` of a command the caller guarantees is a finite float64 (4,) array, with
         ``rows(ctx)``: no checks (the shield's commands are the env's validated actions)."""
-        return self._certify(u, ctx, rows, time.perf_counter())
+        return self.certify_pose(u, ctx.yaw, ctx.velocity, rows, ctx.neighbour_ids)
+
+    def certify_pose(
+        self,
+        u: np.ndarray,
+        yaw: float,
+        velocity: np.ndarray | None,
+        rows: CBFRows,
+        neighbour_ids: tuple[int, ...] | None = None,
+    ) -> tuple[np.ndarray, ShieldReport]:
+        """`certify_trusted` given only what the QP reads of a context: the yaw, the actual
+        velocity (``SafetyContext.velocity``) and the ids that name the rows."""
+        return self._certify(u, yaw, velocity, rows, neighbour_ids, time.perf_counter())
+
+    def certify_many(
+        self,
+        u: np.ndarray,
+        yaws: np.ndarray,
+        velocities: np.ndarray,
+        rows: list[CBFRows],
+        neighbour_ids: list[tuple[int, ...] | None],
+    ) -> tuple[np.ndarray, list[ShieldReport]]:
+        """`certify_pose` of m UAVs' commands ``u`` (m, 4) with their yaws (m,), actual
+        velocities (m, 3), rows and row-naming ids: on 'daqp-direct' one compiled call
+        (`qp_layers.certify_many`; each report's ``time_us`` is its share of the call)."""
+        m = len(rows)
+        if self._native is None:
+            done = [
+                self.certify_pose(u[j], float(yaws[j]), velocities[j], rows[j], neighbour_ids[j])
+                for j in range(m)
+            ]
+            return np.array([d[0] for d in done]).reshape(m, 4), [d[1] for d in done]
+        t0 = time.perf_counter()
+        ends = [0]
+        for r in rows:
+            ends.append(ends[-1] + len(r.b))
+        start = np.array(ends, np.int64)
+        changed, outs = certify_many(
+            u, yaws, velocities, np.concatenate([r.A for r in rows]),
+            np.concatenate([r.b for r in rows]), np.concatenate([r.kind for r in rows]), start,
+            self._lb3, self._ub3, *self._native,
+        )  # fmt: skip
+        share = (time.perf_counter() - t0) * 1e6 / max(m, 1)
+        reports = []
+        for j, was_changed in enumerate(changed.tolist()):
+            if was_changed:
+                rep = self._changed_report(outs[j].tolist(), u[j], rows[j], neighbour_ids[j], t0)
+            else:
+                rep = ShieldReport("nominal", False, 0.0, 0.0, [], rows=rows[j],
+                                   neighbour_ids=neighbour_ids[j])  # fmt: skip
+            rep.time_us = share
+            reports.append(rep)
+        return outs[:, :4].copy(), reports
 
     def _certify(
-        self, u: np.ndarray, ctx: SafetyContext, rows: CBFRows, t0: float
+        self,
+        u: np.ndarray,
+        yaw: float,
+        velocity: np.ndarray | None,
+        rows: CBFRows,
+        ids: tuple[int, ...] | None,
+        t0: float,
     ) -> tuple[np.ndarray, ShieldReport]:
-        velocity = ctx.velocity
         has_velocity, velocity = velocity is not None, _ZEROS3 if velocity is None else velocity
         if nominal_holds(
-            u, ctx.yaw, velocity, has_velocity, rows.A, rows.b, self.alpha_v, self.v_max,
+            u, yaw, velocity, has_velocity, rows.A, rows.b, self.alpha_v, self.v_max,
             self.w_max, self.options.tol, self._accel_step, self._lb3, self._ub3,
         ):  # fmt: skip
             return u, ShieldReport(
                 "nominal", False, 0.0, 0.0, [], time_us=(time.perf_counter() - t0) * 1e6,
-                rows=rows, neighbour_ids=ctx.neighbour_ids,
+                rows=rows, neighbour_ids=ids,
             )  # fmt: skip
         if self._native is not None:
             out = certify_changed(
-                u, ctx.yaw, velocity, has_velocity, rows.A, rows.b, rows.kind, self._lb3,
+                u, yaw, velocity, has_velocity, rows.A, rows.b, rows.kind, self._lb3,
                 self._ub3, *self._native,
             )  # fmt: skip
-            return out[:4], self._changed_report(out.tolist(), u, rows, ctx, t0)
+            return out[:4], self._changed_report(out.tolist(), u, rows, ids, t0)
         stage, v, w, An, bn, (kinds, kept), (lb, ub) = triage(
-            u, ctx.yaw, velocity, has_velocity, rows.A, rows.b, rows.kind, self.alpha_v,
+            u, yaw, velocity, has_velocity, rows.A, rows.b, rows.kind, self.alpha_v,
             self.v_max, self.w_max, self.options.tol, self._accel_step, self._lb3, self._ub3,
             self.options.prune, self._bounds_code,
         )  # fmt: skip
@@ -385,7 +443,7 @@ class SafetyFilter:
             u_safe = np.array((0.0, 0.0, 0.0, w))
             status, solver = "fallback", "brake"
         return u_safe, self._report(
-            status, u, u_safe, rows, ctx, t0, solver, calls, An, bn, kinds, kept
+            status, u, u_safe, rows, ids, t0, solver, calls, An, bn, kinds, kept
         )
 
     # ----------------------------------------------------------------- layers
@@ -487,9 +545,9 @@ class SafetyFilter:
         return x if meets(x, G, bu, bl, self.options.verify_tol) else None
 
     # ----------------------------------------------------------------- report
-    def _changed_report(self, out: list, u, rows, ctx, t0) -> ShieldReport:
+    def _changed_report(self, out: list, u, rows, ids, t0) -> ShieldReport:
         """`_report` from `qp_layers.certify_changed`'s packed output (as a list)."""
-        ids, name = ctx.neighbour_ids, rows.name
+        name = rows.name
         na, ns, nh = int(out[12]), int(out[13]), int(out[14])
         j = OUT_HEAD
         active_rows = [name(int(r), ids) for r in out[j : j + na]]
@@ -522,9 +580,8 @@ class SafetyFilter:
             neighbour_ids=ids,
         )
 
-    def _report(self, status, u, u_safe, rows, ctx, t0, solver, calls, An, bn, kinds, kept):
+    def _report(self, status, u, u_safe, rows, ids, t0, solver, calls, An, bn, kinds, kept):
         """Report for a changed action; slack and violations are measured at the returned action."""
-        ids = ctx.neighbour_ids
         active, over_soft, over_hard, viol, slack_total, hard_violation, speed, box, norm = (
             outcome(An, bn, kinds, CONNECT, max(self.options.tol, 1e-7), u, u_safe,
                     self.alpha_v, self.v_max)
@@ -551,7 +608,7 @@ class SafetyFilter:
             gave_up=gave_up,
             slack_per_row=slack_rows,
             rows=rows,
-            neighbour_ids=ctx.neighbour_ids,
+            neighbour_ids=ids,
         )
 
 

@@ -25,7 +25,7 @@ from pettingzoo.utils.wrappers import BaseParallelWrapper
 
 from uavtrack_env.config import EnvConfig
 from uavtrack_env.env import UAVTrackEnv
-from uavtrack_env.onboard import observe_team, onboard_team
+from uavtrack_env.onboard import certify_team, observe_team, onboard_team
 from uavtrack_env.presets import ExpertConfig, expert_config
 from uavtrack_env.safety import SafetyContext, ShieldReport
 
@@ -111,11 +111,13 @@ class CBFShield(BaseParallelWrapper):
     def step(self, actions: dict[str, Any]):
         # The env's own validation: identical errors, raised before anything changes.
         u, clipped = self._raw.validate_actions(actions)
-        reports = {}
+        names = list(actions)
+        live = [self._ids[a] for a in names]
         u_safe = u.copy()
-        for agent in actions:
-            i = self._ids[agent]
-            u_safe[i], reports[agent] = self.onboard[agent].certify_trusted(u[i])
+        reports = {}
+        if names:
+            u_safe[live], done = certify_team([self.onboard[a] for a in names], u[live])
+            reports = dict(zip(names, done, strict=True))
         certified = np.clip(u_safe / self._scale, -1.0, 1.0)
         # An unchanged action is passed through as given (bit-identical behaviour).
         changed = [self._ids[a] for a, rep in reports.items() if rep.active]

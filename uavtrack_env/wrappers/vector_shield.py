@@ -12,7 +12,7 @@ from typing import Any
 
 import numpy as np
 
-from uavtrack_env.onboard import observe_team, onboard_team
+from uavtrack_env.onboard import certify_team, observe_team, onboard_team
 from uavtrack_env.presets import ExpertConfig, expert_config
 from uavtrack_env.safety import ShieldReport
 from uavtrack_env.vector import UAVTrackVectorEnv
@@ -67,11 +67,14 @@ class VectorCBFShield:
         u_safe = u.copy()
         changed = np.zeros(active.shape, bool)
         reports = [{} for _ in range(self.num_envs)]
-        for k, i in np.argwhere(active).tolist():
-            agent = self.onboard[k][i]
-            u_safe[k, i], rep = agent.certify_trusted(u[k, i])
-            reports[k][agent.name] = rep
-            changed[k, i] = rep.active
+        live = np.argwhere(active)
+        if len(live):
+            ks, ids = live[:, 0], live[:, 1]
+            agents = [self.onboard[k][i] for k, i in live.tolist()]
+            u_safe[ks, ids], certified = certify_team(agents, u[ks, ids])
+            for agent, k, i, rep in zip(agents, ks.tolist(), ids.tolist(), certified, strict=True):
+                reports[k][agent.name] = rep
+                changed[k, i] = rep.active
         certified = np.clip(u_safe / self._scale, -1.0, 1.0)
         # An unchanged action is passed on as given: the world applies exactly what it would.
         applied = np.where(changed[..., None], certified, np.asarray(actions, np.float64))

@@ -1,0 +1,270 @@
+"""The onboard stacks of a team as arrays: what every UAV takes from a step, in one compiled call.
+
+After the team's UKFs have stepped (`estimation.bank.TrackerBank`), `observe_pass` does for
+every UAV that observed: the spells of detector boxes cut by the image border, its team-mates'
+messages (the reachable-set bounds of `onboard.NeighbourTable`), the car's exclusion box
+(`car_box_arrays`, the arithmetic of `onboard.car_box`) and all its CBF rows (`all_rows`, as
+`safety.cbf.RowBuilder` builds them from a `SafetyContext`). Per-UAV Python then only wraps
+slices of the outputs, lazily (`onboard.OnboardAgent.rows`, ``.context``, ``.belief``).
+
+`TeamState` holds what those steps remember, for every slot of a team (or of K teams): the
+neighbour tables, the cut-box spells, the car box's anchor, and each world's obstacle map.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+
+from .safety.barrier_rows import N_FAMILIES, all_rows
+from .target import CAR_HALF_EXTENTS
+
+CAR_DIAG = math.hypot(*CAR_HALF_EXTENTS[:2].tolist())
+"""The car footprint's half diagonal (m)."""
+CAR_HALF_HEIGHT = float(CAR_HALF_EXTENTS[2])
+
+BOX_COLUMNS = 13
+"""`car_box_arrays`'s output row: centre (3), velocity (3), half extents (3), growth (3), stale."""
+
+
+@numba.njit(cache=True)
+def car_box_arrays(
+    q, vq, var, steps_since, anchor_q, anchor_var, has_anchor, t_u, t_v, params, out
+):  # pragma: no cover (compiled)
+    """`onboard.car_box` on arrays: the estimate's position ``q``, velocity ``vq``, position
+    variances ``var`` (P[4,4], P[5,5], P[6,6]) and steps since its last detection; the anchor's
+    position and variances (``has_anchor``); the cut-box times (s). ``params`` = [target_margin,
+    target_sigmas, target_margin_max, target_stale_after, car_on_ground, car_speed, dt]. Writes a
+    `BOX_COLUMNS` row into ``out``."""
+    margin, sigmas, margin_max, stale_after = params[0], params[1], params[2], params[3]
+    on_ground, car_speed, dt = params[4] > 0.5, params[5], params[6]
+    diag, c = CAR_DIAG, CAR_HALF_HEIGHT
+    stale = steps_since * dt - stale_after
+    use_anchor = not (stale <= 0.0 or not has_anchor)
+    rq = anchor_q if use_anchor else q
+    rv = anchor_var if use_anchor else var
+    sigma_p = math.sqrt(max(rv[0], rv[1], rv[2], 0.0))
+    pad = min(margin + sigmas * sigma_p, margin_max)
+    hxy, hz = diag + pad, c + pad
+    g_xy = g_z = 0.0
+    bias_speed = 2.0 * car_speed
+    if t_u > 0.0:
+        hxy += min(bias_speed * t_u, diag)
+        g_xy += bias_speed if bias_speed * t_u < diag else 0.0
+    if t_v > 0.0:
+        hz += min(bias_speed * t_v, c)
+        g_z += bias_speed if bias_speed * t_v < c else 0.0
+    if on_ground:  # the box spans [<= 0, the car's height + target_margin]
+        top, z = 2.0 * c + margin, rq[2]
+        hz, g_z = max(top - z, z), 0.0
+    if stale > 0.0:  # the reachable set from the anchor, its top included
+        hxy += car_speed * stale
+        hz += car_speed * stale
+        g_xy += car_speed
+        g_z += car_speed
+    for a in range(3):
+        out[a] = rq[a]
+        out[3 + a] = 0.0 if stale > 0.0 else vq[a]
+    out[6], out[7], out[8] = hxy, hxy, hz
+    out[9], out[10], out[11] = g_xy, g_xy, g_z
+    out[12] = 1.0 if stale > 0.0 else 0.0
+
+
+@numba.njit(cache=True)
+def take_messages(
+    ks, pos, p, v, v_err, age, known, dt, accel, speed, timeout
+):  # pragma: no cover (compiled)
+    """`NeighbourTable.update` on its arrays, in place: messages ``pos[i]`` from team-mate
+    ``ks[i]``."""
+    for j in range(age.shape[0]):
+        age[j] += 1
+    for i in range(ks.shape[0]):
+        k = ks[i]
+        if known[k]:
+            gap = age[k]
+            for a in range(3):
+                v[k, a] = (pos[i, a] - p[k, a]) / (gap * dt)
+            v_err[k] = 0.5 * accel * (gap - 1) * dt
+        else:  # first heard: its velocity is unknown within the speed bound
+            for a in range(3):
+                v[k, a] = 0.0
+            v_err[k] = speed
+        for a in range(3):
+            p[k, a] = pos[i, a]
+        age[k] = 0
+        known[k] = True
+    for j in range(age.shape[0]):
+        known[j] = known[j] and age[j] < timeout
+
+
+@numba.njit(cache=True)
+def believe(known, p, v, v_err, age, dt, speed, accel):  # pragma: no cover (compiled)
+    """`NeighbourTable.belief`'s arrays for the ``known`` team-mates (``accel`` < 0: none), in
+    three blocks (each array returned to Python costs ~0.5 us): [indices, ages] (2, m),
+    [positions, velocities] (2, m, 3) and [position radii, velocity radii] (2, m)."""
+    ks = np.flatnonzero(known)
+    m = ks.shape[0]
+    ints = np.empty((2, m), np.int64)
+    motion = np.empty((2, m, 3))
+    radii = np.zeros((2, m))
+    pos, vel, radius, vel_radius = motion[0], motion[1], radii[0], radii[1]
+    for i in range(m):
+        k = ks[i]
+        ints[0, i], ints[1, i] = k, age[k]
+        t = age[k] * dt
+        for a in range(3):
+            vel[i, a] = v[k, a]
+            pos[i, a] = p[k, a]
+        radius[i] = speed * t
+        if accel >= 0.0:
+            err = v_err[k]
+            s = math.sqrt(v[k, 0] * v[k, 0] + v[k, 1] * v[k, 1] + v[k, 2] * v[k, 2])
+            # forward Euler, p(k+1) = p(k) + v(k+1) dt: the drift is a sum, not an integral
+            propagated = 0.5 * accel * t * (t + dt) + err * t
+            radius[i] = min((speed + s) * t, propagated)
+            for a in range(3):
+                pos[i, a] = p[k, a] + v[k, a] * t
+            vel_radius[i] = min(err + accel * t, 2.0 * speed)
+    return ints, motion, radii
+
+
+@numba.njit(cache=True)
+def take_and_believe(
+    ks, pos, p, v, v_err, age, known, dt, accel, speed, timeout, believe_accel
+):  # pragma: no cover (compiled)
+    """`take_messages`, then `believe`: one step of `NeighbourTable.take`."""
+    take_messages(ks, pos, p, v, v_err, age, known, dt, accel, speed, timeout)
+    return believe(known, p, v, v_err, age, dt, speed, believe_accel)
+
+
+def max_rows(n_mates: int, n_obstacles: int) -> int:
+    """The most CBF rows one UAV can have: uav and connect per team-mate, obstacle and
+    occlusion per box, the car and the floor."""
+    return 2 * n_mates + 2 * n_obstacles + 2
+
+
+@numba.njit(cache=True)
+def observe_pass(
+    slots, worlds, data, msg_start, msg_k, msg_pos, has_est, est_q, est_v, est_var, est_steps,
+    nb_p, nb_v, nb_err, nb_age, nb_known, uncut, cut_steps, anchor, has_anchor,
+    obs_c, obs_h, obs_n, table_p, box_p, row_p, flags, gammas, margins,
+    out_A, out_f, out_i, out_start, out_sizes, out_belief_i, out_belief_f, out_box,
+):  # fmt: skip  # pragma: no cover (compiled)
+    """One step of what the UAVs ``slots`` (worlds ``worlds``) know, in place, and their rows.
+
+    Inputs per UAV j: its `bank.INPUT_COLUMNS` row ``data[j]`` (own state, detector flags); its
+    messages ``msg_k/msg_pos[msg_start[j]:msg_start[j + 1]]`` (team-mate index in its table,
+    position); its estimate (``has_est``, position, velocity, position variances, steps since
+    detection). State per slot: the neighbour tables ``nb_*`` (`NeighbourTable`), the cut-box
+    spells ``uncut``/``cut_steps``, the car box's ``anchor`` (position, variances); per world:
+    obstacles ``obs_c/obs_h[:obs_n]``.
+
+    ``table_p`` = [dt, accel (the lag model's a_max, 0: none), speed bound, timeout, believe's
+    accel (-1: none)]; ``box_p``: `car_box_arrays`'s params then [recovery steps, pad cut
+    boxes]; ``row_p`` = [d_s, r_s, r_c, alpha_v, clearance, z_min, theta*, point mode];
+    ``flags`` = [box obstacles, car as obstacle, occlusion rows, moving-target occlusion,
+    occlusion size margin] (`safety.cbf.RowBuilder.pass_params`).
+
+    Outputs: the rows of UAV j at ``out_start[j]:out_start[j + 1]`` of ``out_A`` (., 3),
+    ``out_f`` (5, .) = [b, h, gamma, drift, margin] and ``out_i`` (2, .) = [kind, index], its
+    family sizes ``out_sizes[j]``; its believed team-mates ``out_belief_i[j]`` = [count, table
+    indices..., ages...] and ``out_belief_f[j]`` = [positions (3 k), velocities (3 k), radii
+    (k), velocity radii (k)]; its car box ``out_box[j]`` (`BOX_COLUMNS`, NaN without estimate).
+    """
+    dt, accel, speed = table_p[0], table_p[1], table_p[2]
+    timeout, believe_accel = int(table_p[3]), table_p[4]
+    recovery, pad_cut = int(box_p[7]), box_p[8] > 0.5
+    box_model, car_rows, occlusion = flags[0], flags[1], flags[2]
+    moving, size_margin = flags[3], flags[4]
+    d_s, r_s, r_c, alpha_v = row_p[0], row_p[1], row_p[2], row_p[3]
+    clearance, z_min, theta_star, mode = row_p[4], row_p[5], row_p[6], int(row_p[7])
+    zeros3 = np.zeros(3)
+    r = 0
+    for j in range(slots.shape[0]):
+        s, w = slots[j], worlds[j]
+        row = data[j]
+        detected = row[8] > 0.5
+        for axis in range(2):  # the spells of boxes cut by the image border (`car_box`)
+            if detected:
+                uncut[s, axis] = 0 if row[13 + axis] > 0.5 else min(uncut[s, axis] + 1, recovery)
+            cut_steps[s, axis] = cut_steps[s, axis] + 1 if uncut[s, axis] < recovery else 0
+        a, b = msg_start[j], msg_start[j + 1]
+        ints, motion, radii = take_and_believe(
+            msg_k[a:b], msg_pos[a:b], nb_p[s], nb_v[s], nb_err[s], nb_age[s], nb_known[s],
+            dt, accel, speed, timeout, believe_accel,
+        )  # fmt: skip
+        k = ints.shape[1]
+        out_belief_i[j, 0] = k
+        out_belief_i[j, 1 : 1 + k] = ints[0]
+        out_belief_i[j, 1 + k : 1 + 2 * k] = ints[1]
+        out_belief_f[j, : 3 * k] = motion[0].ravel()
+        out_belief_f[j, 3 * k : 6 * k] = motion[1].ravel()
+        out_belief_f[j, 6 * k : 7 * k] = radii[0]
+        out_belief_f[j, 7 * k : 8 * k] = radii[1]
+        box = out_box[j]
+        car = has_est[j]
+        if car:
+            t_u = cut_steps[s, 0] * dt if pad_cut else 0.0
+            t_v = cut_steps[s, 1] * dt if pad_cut else 0.0
+            car_box_arrays(
+                est_q[j], est_v[j], est_var[j], est_steps[j], anchor[s, :3], anchor[s, 3:],
+                has_anchor[s], t_u, t_v, box_p, box,
+            )  # fmt: skip
+            if box[12] == 0.0:  # a fresh box: the anchor of a later reachable set
+                anchor[s, :3] = est_q[j]
+                anchor[s, 3:] = est_var[j]
+                has_anchor[s] = True
+            q, vq, half, growth = box[0:3], box[3:6], box[6:9], box[9:12]
+        else:
+            box[:] = np.nan
+            q, vq, half, growth = zeros3, zeros3, zeros3, zeros3
+        m = obs_n[w]
+        centers, halves = obs_c[w, :m], obs_h[w, :m]
+        A, floats, ints2, sizes = all_rows(
+            row[0:3], motion[0], radii[0], centers, halves, box_model, car and car_rows,
+            q, vq, half, 0.0, growth, car and box[12] > 0.5, d_s, r_s, r_c, alpha_v, clearance,
+            z_min, car and occlusion and m > 0, theta_star, mode, moving, size_margin, gammas,
+            margins,
+        )  # fmt: skip
+        n = A.shape[0]
+        out_start[j] = r
+        out_A[r : r + n] = A
+        out_f[:, r : r + n] = floats
+        out_i[:, r : r + n] = ints2
+        out_sizes[j, : N_FAMILIES + 1] = sizes
+        r += n
+    out_start[slots.shape[0]] = r
+
+
+class TeamState:
+    """What the onboard stacks of ``size`` slots (``worlds`` teams of ``n`` UAVs, slot = world
+    n + index) remember between steps, as arrays `observe_pass` updates in place."""
+
+    def __init__(self, n: int, worlds: int = 1) -> None:
+        self.n, self.worlds = n, worlds
+        size, mates = n * worlds, max(n - 1, 0)
+        self.nb_p = np.zeros((size, mates, 3))
+        self.nb_v = np.zeros((size, mates, 3))
+        self.nb_err = np.zeros((size, mates))
+        self.nb_age = np.zeros((size, mates), np.int64)
+        self.nb_known = np.zeros((size, mates), bool)
+        self.uncut = np.zeros((size, 2), np.int64)
+        self.cut_steps = np.zeros((size, 2), np.int64)
+        self.anchor = np.zeros((size, 6))
+        self.has_anchor = np.zeros(size, bool)
+        self.obs_c = np.zeros((worlds, 0, 3))
+        self.obs_h = np.zeros((worlds, 0, 3))
+        self.obs_n = np.zeros(worlds, np.int64)
+
+    def set_map(self, world: int, centers: np.ndarray, half: np.ndarray) -> None:
+        """World ``world``'s known obstacles (m, 3) centres and half extents."""
+        m = len(centers)
+        if m > self.obs_c.shape[1]:
+            grown = np.zeros((self.worlds, m, 3)), np.zeros((self.worlds, m, 3))
+            grown[0][:, : self.obs_c.shape[1]] = self.obs_c
+            grown[1][:, : self.obs_h.shape[1]] = self.obs_h
+            self.obs_c, self.obs_h = grown
+        self.obs_c[world, :m], self.obs_h[world, :m] = centers, half
+        self.obs_n[world] = m
