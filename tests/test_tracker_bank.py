@@ -197,4 +197,4 @@ def test_bank_rejects_plain_filterpy_configs_and_malformed_rows():
         bank.step([0, 1], np.array([row]))
     with pytest.raises(ValueError, match="float64"):
         bank.step([0], np.zeros((1, 15), np.float32))
-    assert bank.estimates == [None, None]
+    assert list(bank.estimates) == [None, None]

@@ -64,16 +64,27 @@ class OnboardTracker:
         cfg = cfg or UKFConfig()
         self.bank: TrackerBank | None = None
         self.estimator: TargetEstimator | None = None
-        self.estimate: Estimate | None = None
-        """The latest estimate (None until the car was first detected)."""
+        self._estimate: Estimate | None = None
         if cfg.vectorized:
             self.bank, self.slot = bank or TrackerBank(1, camera, cfg), slot
         else:
             self.estimator, self.slot = TargetEstimator(camera, cfg), 0
 
+    @property
+    def estimate(self) -> Estimate | None:
+        """The latest estimate (None until the car was first detected)."""
+        return self._estimate if self.bank is None else self.bank.estimates[self.slot]
+
+    @property
+    def has_estimate(self) -> bool:
+        """``estimate is not None``, without making the estimate."""
+        return (
+            self._estimate is not None if self.bank is None else self.bank.has_estimate(self.slot)
+        )
+
     def reset(self) -> None:
         """Forget the estimate: the next detection initialises the filter."""
-        self.estimate = None
+        self._estimate = None
         if self.bank is not None:
             self.bank.forget(self.slot)
 
@@ -82,11 +93,10 @@ def update_trackers(
     trackers: Sequence[OnboardTracker],
     infos: Sequence[dict],
     inputs: Sequence[tuple] | None = None,
-) -> list:
+) -> None:
     """Advance each UAV's filter with its info (measurement and own motion): the trackers of one
-    `TrackerBank` in one compiled call, plain-filterpy trackers one by one; returns each
-    tracker's estimate (None until its first detection). ``inputs``: the infos' `_input_row`s,
-    if the caller has them."""
+    `TrackerBank` in one compiled call, plain-filterpy trackers one by one (their new estimates:
+    ``tracker.estimate``). ``inputs``: the infos' `_input_row`s, if the caller has them."""
     if inputs is None:
         inputs = [_input_row(info) for info in infos]
     groups: dict[int, tuple[TrackerBank, list[OnboardTracker], list[tuple]]] = {}
@@ -102,10 +112,6 @@ def update_trackers(
         group[2].append(row)
     for bank, members, rows in groups.values():
         bank.step([t.slot for t in members], np.array(rows, float))
-        estimates = bank.estimates
-        for t in members:
-            t.estimate = estimates[t.slot]
-    return [t.estimate for t in trackers]
 
 
 def _input_row(info: dict) -> tuple:
@@ -130,14 +136,14 @@ def _step_alone(tracker: OnboardTracker, info: dict) -> None:
             m["u"], m["v"], m["depth"], m["psi"], m["truncated_u"], m["truncated_v"]
         )
     est = tracker.estimator
-    if tracker.estimate is None:
+    if tracker._estimate is None:
         if meas is not None:
-            tracker.estimate = est.reset(meas, pos, yaw)
+            tracker._estimate = est.reset(meas, pos, yaw)
         return
     # The UAV's own velocity (IMU/odometry) in the camera frame, as applied over the step.
     vx, vy, vz = world_to_cam_vec(own["velocity"], yaw).tolist()
     u_meas = np.array((vx, vy, vz, -float(own["yaw_rate"])))
-    tracker.estimate = est.step(u_meas, pos, yaw, meas)
+    tracker._estimate = est.step(u_meas, pos, yaw, meas)
 
 
 @dataclass(frozen=True)
@@ -430,7 +436,7 @@ class OnboardAgent:
                 )
             out, j = self._seen
             belief, own, box = self.belief, self.info["own"], out[7][j]
-            if self.tracker.estimate is None:  # no estimate: no target rows
+            if not self.tracker.has_estimate:  # no estimate: no target rows
                 target: dict = {
                     "target_velocity": np.zeros(3),
                     "target_half_extents": np.array(CAR_HALF_EXTENTS, float),
@@ -473,6 +479,7 @@ class OnboardAgent:
             builder = self.filter.row_builder
             ctx = self.context() if builder.lag_tau > 0.0 else None
             self._rows = builder.stack(A[a:b], floats[:, a:b], ints[:, a:b], sizes[j], ctx)
+            floats[0, a:b] = self._rows.b  # second-order b: the pass's arrays hold the rows
         return self._rows
 
     def certify(self, u_nominal: np.ndarray) -> tuple[np.ndarray, ShieldReport]:
@@ -500,13 +507,21 @@ def certify_team(
 ) -> tuple[np.ndarray, list[ShieldReport]]:
     """`OnboardAgent.certify_trusted` of ``u[j]`` (m, 4) for each of m agents with one
     configuration (`SafetyFilter.certify_many`: one compiled call)."""
+    rows = [agent.rows() for agent in agents]
+    ids = [agent.neighbour_ids() for agent in agents]
+    out = agents[0]._seen[0]
+    if all(agent._seen[0] is out for agent in agents):  # one pass: its arrays as they are
+        js = np.array([agent._seen[1] for agent in agents])
+        data, start = out[8], out[3]
+        packed = (out[0], out[1][0], out[2][0], start[js], start[js + 1])
+        return agents[0].filter.certify_many(u, data[js, 3], data[js, 4:7], rows, ids, packed)
     own = [agent.info["own"] for agent in agents]
     return agents[0].filter.certify_many(
         u,
         np.array([o["yaw"] for o in own], float),
         np.array([o["velocity"] for o in own], float).reshape(-1, 3),
-        [agent.rows() for agent in agents],
-        [agent.neighbour_ids() for agent in agents],
+        rows,
+        ids,
     )
 
 
@@ -551,8 +566,8 @@ def _observe_pass(agents: list[OnboardAgent], infos: list[dict], inputs: list[tu
     """`observe_pass` for UAVs of one `TeamState` whose trackers have taken the step."""
     team, m = agents[0].team, len(agents)
     slots = np.array([a.slot for a in agents], np.int64)
+    data = np.array(inputs, float)
     msg_start, ks, heard = np.zeros(m + 1, np.int64), [], []
-    estimates = []
     for j, (agent, info) in enumerate(zip(agents, infos, strict=True)):
         index = agent.neighbours._index
         for name, pos in info["neighbours"].items():
@@ -561,14 +576,6 @@ def _observe_pass(agents: list[OnboardAgent], infos: list[dict], inputs: list[tu
                 ks.append(k)
                 heard.append(pos)
         msg_start[j + 1] = len(ks)
-        est = agent.tracker.estimate
-        if est is None:
-            estimates.append(_NO_ESTIMATE)
-        else:
-            P = est.covariance
-            estimates.append((1.0, *est.target_position.tolist(), *est.target_velocity.tolist(),
-                              P[4, 4], P[5, 5], P[6, 6], est.steps_since_detection))  # fmt: skip
-    est = np.array(estimates)
     mates, rows = team.n - 1, m * max_rows(team.n - 1, team.obs_c.shape[1])
     out = (
         np.empty((rows, 3)), np.empty((5, rows)), np.empty((2, rows), np.int64),
@@ -577,18 +584,34 @@ def _observe_pass(agents: list[OnboardAgent], infos: list[dict], inputs: list[tu
         np.empty((m, BOX_COLUMNS)),
     )  # fmt: skip
     observe_pass(
-        slots, slots // team.n, np.array(inputs, float), msg_start, np.array(ks, np.int64),
-        np.array(heard, float) if heard else _NO_POSITIONS, est[:, 0] > 0.5, est[:, 1:4],
-        est[:, 4:7], est[:, 7:10], est[:, 10].astype(np.int64), team.nb_p, team.nb_v,
+        slots, slots // team.n, data, msg_start, np.array(ks, np.int64),
+        np.array(heard, float) if heard else _NO_POSITIONS, *_estimate_arrays(agents),
+        team.nb_p, team.nb_v,
         team.nb_err, team.nb_age, team.nb_known, team.uncut, team.cut_steps, team.anchor,
         team.has_anchor, team.obs_c, team.obs_h, team.obs_n, *agents[0]._pass_params, *out,
     )  # fmt: skip
+    out += (data,)
     for j, (agent, info) in enumerate(zip(agents, infos, strict=True)):
         agent.info, agent._seen = info, (out, j)
         agent._belief, agent._context, agent._rows = None, None, None
 
 
-_NO_ESTIMATE = (0.0,) * 11
+def _estimate_arrays(agents: list[OnboardAgent]) -> tuple:
+    """`observe_pass`'s estimate inputs (est_slots, x, P, ready, counts): the state arrays of
+    the agents' `TrackerBank`, or, for trackers outside one bank, arrays of their estimates."""
+    bank = agents[0].tracker.bank
+    if bank is not None and all(a.tracker.bank is bank for a in agents):
+        slots = np.array([a.tracker.slot for a in agents], np.int64)
+        return slots, bank._x, bank._P, bank._ready, bank._counts
+    m = len(agents)
+    x, P = np.zeros((m, 10)), np.zeros((m, 10, 10))
+    ready, counts = np.zeros(m, bool), np.zeros((m, 2), np.int64)
+    for j, agent in enumerate(agents):
+        est = agent.tracker.estimate
+        if est is not None:
+            x[j] = np.concatenate((est.s, est.target_position, est.target_velocity))
+            P[j], ready[j], counts[j, 0] = est.covariance, True, est.steps_since_detection
+    return np.arange(m), x, P, ready, counts
 
 
 class CarBox(NamedTuple):

@@ -147,8 +147,8 @@ def max_rows(n_mates: int, n_obstacles: int) -> int:
 
 @numba.njit(cache=True)
 def observe_pass(
-    slots, worlds, data, msg_start, msg_k, msg_pos, has_est, est_q, est_v, est_var, est_steps,
-    nb_p, nb_v, nb_err, nb_age, nb_known, uncut, cut_steps, anchor, has_anchor,
+    slots, worlds, data, msg_start, msg_k, msg_pos, est_slots, est_x, est_P, est_ready,
+    est_counts, nb_p, nb_v, nb_err, nb_age, nb_known, uncut, cut_steps, anchor, has_anchor,
     obs_c, obs_h, obs_n, table_p, box_p, row_p, flags, gammas, margins,
     out_A, out_f, out_i, out_start, out_sizes, out_belief_i, out_belief_f, out_box,
 ):  # fmt: skip  # pragma: no cover (compiled)
@@ -156,10 +156,10 @@ def observe_pass(
 
     Inputs per UAV j: its `bank.INPUT_COLUMNS` row ``data[j]`` (own state, detector flags); its
     messages ``msg_k/msg_pos[msg_start[j]:msg_start[j + 1]]`` (team-mate index in its table,
-    position); its estimate (``has_est``, position, velocity, position variances, steps since
-    detection). State per slot: the neighbour tables ``nb_*`` (`NeighbourTable`), the cut-box
-    spells ``uncut``/``cut_steps``, the car box's ``anchor`` (position, variances); per world:
-    obstacles ``obs_c/obs_h[:obs_n]``.
+    position); its estimate: row ``est_slots[j]`` of a `estimation.bank.TrackerBank`'s state
+    (x, P, ready, counts: steps since detection first). State per slot: the neighbour tables
+    ``nb_*`` (`NeighbourTable`), the cut-box spells ``uncut``/``cut_steps``, the car box's
+    ``anchor`` (position, variances); per world: obstacles ``obs_c/obs_h[:obs_n]``.
 
     ``table_p`` = [dt, accel (the lag model's a_max, 0: none), speed bound, timeout, believe's
     accel (-1: none)]; ``box_p``: `car_box_arrays`'s params then [recovery steps, pad cut
@@ -204,17 +204,21 @@ def observe_pass(
         out_belief_f[j, 6 * k : 7 * k] = radii[0]
         out_belief_f[j, 7 * k : 8 * k] = radii[1]
         box = out_box[j]
-        car = has_est[j]
+        e = est_slots[j]
+        car = est_ready[e]
         if car:
             t_u = cut_steps[s, 0] * dt if pad_cut else 0.0
             t_v = cut_steps[s, 1] * dt if pad_cut else 0.0
+            var = np.empty(3)
+            for a in range(3):
+                var[a] = est_P[e, 4 + a, 4 + a]
             car_box_arrays(
-                est_q[j], est_v[j], est_var[j], est_steps[j], anchor[s, :3], anchor[s, 3:],
-                has_anchor[s], t_u, t_v, box_p, box,
+                est_x[e, 4:7], est_x[e, 7:10], var, est_counts[e, 0], anchor[s, :3],
+                anchor[s, 3:], has_anchor[s], t_u, t_v, box_p, box,
             )  # fmt: skip
             if box[12] == 0.0:  # a fresh box: the anchor of a later reachable set
-                anchor[s, :3] = est_q[j]
-                anchor[s, 3:] = est_var[j]
+                anchor[s, :3] = est_x[e, 4:7]
+                anchor[s, 3:] = var
                 has_anchor[s] = True
             q, vq, half, growth = box[0:3], box[3:6], box[6:9], box[9:12]
         else:

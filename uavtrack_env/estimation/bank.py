@@ -257,16 +257,23 @@ class TrackerBank:
         self._hv = np.zeros((size, cap, 3))
         self._hist = np.zeros((size, 2), np.int64)  # next index, samples
         self.n_covariance_repairs = np.zeros(size, np.int64)
-        self.estimates: list[Estimate | None] = [None] * size
+        self.estimates = Estimates(size)
+        """Slot i's latest `Estimate` (None until its first detection)."""
 
     def forget(self, slot: int) -> None:
         """Slot ``slot`` waits for a first detection again (its next one initialises it)."""
         self._ready[slot] = False
-        self.estimates[slot] = None
+        self.estimates.clear(slot)
 
-    def step(self, slots: Sequence[int], data: np.ndarray) -> None:
+    def has_estimate(self, slot: int) -> bool:
+        """Slot ``slot`` has had its first detection."""
+        return bool(self._ready[slot])
+
+    def step(self, slots: Sequence[int], data: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Step the UAVs ``slots`` (distinct) with their input rows ``data`` (len(slots), 15):
-        the env's own data (finite, depth > 0 where detected), taken without further checks."""
+        the env's own data (finite, depth > 0 where detected), taken without further checks.
+        Returns the step's outputs: row j of ``(out_x, out_P)`` is slot ``slots[j]``'s estimate
+        (`Estimates.from_outputs`) where it has one."""
         m = len(slots)
         if data.shape != (m, len(INPUT_COLUMNS)) or data.dtype != np.float64:
             raise ValueError(
@@ -281,16 +288,50 @@ class TrackerBank:
             *self._consts, out_x, out_P,
         )  # fmt: skip
         ready = self._ready[idx].tolist()
-        meta = out_x[:, 16:18].tolist()
+        outputs = (out_x, out_P)
         estimates = self.estimates
         for j, slot in enumerate(slots):
             if ready[j]:
-                row = out_x[j]
-                est = object.__new__(Estimate)  # fields set as the dataclass does
-                est.__dict__.update(
-                    s=row[0:4], target_position=row[4:7], target_velocity=row[7:10],
-                    target_acceleration=row[10:13], vq_cam=row[13:16],
-                    detected=meta[j][0] > 0.5, covariance=out_P[j],
-                    steps_since_detection=int(meta[j][1]),
-                )  # fmt: skip
-                estimates[slot] = est
+                estimates.set(slot, outputs, j)
+        return outputs
+
+
+class Estimates(Sequence):
+    """`TrackerBank.estimates`: each slot's latest `Estimate` (None before its first
+    detection), made from its step's output rows when first read."""
+
+    def __init__(self, size: int) -> None:
+        self._made: list[Estimate | None] = [None] * size
+        self._rows: list[tuple | None] = [None] * size
+
+    def set(self, slot: int, outputs: tuple[np.ndarray, np.ndarray], j: int) -> None:
+        """Slot ``slot``'s estimate is row ``j`` of `TrackerBank.step`'s ``outputs``."""
+        self._made[slot], self._rows[slot] = None, (outputs, j)
+
+    def clear(self, slot: int) -> None:
+        """Slot ``slot`` has no estimate."""
+        self._made[slot] = self._rows[slot] = None
+
+    def __len__(self) -> int:
+        return len(self._made)
+
+    def __getitem__(self, slot):
+        if isinstance(slot, slice):
+            return [self[i] for i in range(*slot.indices(len(self)))]
+        est = self._made[slot]
+        if est is None and self._rows[slot] is not None:
+            (out_x, out_P), j = self._rows[slot]
+            est = self._made[slot] = self.from_outputs(out_x[j], out_P[j])
+        return est
+
+    @staticmethod
+    def from_outputs(row: np.ndarray, P: np.ndarray) -> Estimate:
+        """The `Estimate` of one output row (x, acceleration, V_q in the camera frame,
+        detected, steps since detection) and its covariance."""
+        est = object.__new__(Estimate)  # fields set as the dataclass does
+        est.__dict__.update(
+            s=row[0:4], target_position=row[4:7], target_velocity=row[7:10],
+            target_acceleration=row[10:13], vq_cam=row[13:16], detected=bool(row[16] > 0.5),
+            covariance=P, steps_since_detection=int(row[17]),
+        )  # fmt: skip
+        return est

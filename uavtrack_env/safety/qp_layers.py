@@ -181,22 +181,22 @@ def certify_changed(
 
 @numba.njit(cache=True)
 def certify_many(
-    u, yaw, velocity, A, b, kind, start, lb3, ub3, params, settings
+    u, yaw, velocity, A, b, kind, begin, end, lb3, ub3, params, settings
 ):  # pragma: no cover (compiled)
     """`qp_arrays.nominal_holds`, then `certify_changed` where it fails, for m UAVs at once:
-    UAV j's command ``u[j]``, yaw, actual velocity and rows ``A/b/kind[start[j]:start[j + 1]]``.
+    UAV j's command ``u[j]``, yaw, actual velocity and rows ``A/b/kind[begin[j]:end[j]]``.
     Returns (changed (m,), outputs (m, width)): row j is `certify_changed`'s packed output, or
     ``u[j]`` alone where the nominal holds."""
     m = u.shape[0]
     width = OUT_HEAD
     for j in range(m):
-        width = max(width, OUT_HEAD + 4 * (start[j + 1] - start[j]))
+        width = max(width, OUT_HEAD + 4 * (end[j] - begin[j]))
     changed = np.zeros(m, np.bool_)
     outs = np.zeros((m, width))
     alpha_v, v_max, w_max = params[P_ALPHA_V], params[P_V_MAX], params[P_W_MAX]
     tol, accel_step = params[P_TOL], params[P_ACCEL_STEP]
     for j in range(m):
-        a, e = start[j], start[j + 1]
+        a, e = begin[j], end[j]
         if nominal_holds(
             u[j], yaw[j], velocity[j], True, A[a:e], b[a:e], alpha_v, v_max, w_max, tol,
             accel_step, lb3, ub3,

@@ -51,7 +51,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import MISSING, dataclass, field, fields
 from typing import Literal
 
 import daqp
@@ -368,10 +368,13 @@ class SafetyFilter:
         velocities: np.ndarray,
         rows: list[CBFRows],
         neighbour_ids: list[tuple[int, ...] | None],
+        packed: tuple | None = None,
     ) -> tuple[np.ndarray, list[ShieldReport]]:
         """`certify_pose` of m UAVs' commands ``u`` (m, 4) with their yaws (m,), actual
         velocities (m, 3), rows and row-naming ids: on 'daqp-direct' one compiled call
-        (`qp_layers.certify_many`; each report's ``time_us`` is its share of the call)."""
+        (`qp_layers.certify_many`; each report's ``time_us`` is its share of the call).
+        ``packed``: (A, b, kind, begin, end), arrays in which UAV j's rows are
+        ``[begin[j]:end[j]]``, if the caller has them."""
         m = len(rows)
         if self._native is None:
             done = [
@@ -380,24 +383,26 @@ class SafetyFilter:
             ]
             return np.array([d[0] for d in done]).reshape(m, 4), [d[1] for d in done]
         t0 = time.perf_counter()
-        ends = [0]
-        for r in rows:
-            ends.append(ends[-1] + len(r.b))
-        start = np.array(ends, np.int64)
+        if packed is None:
+            ends = [0]
+            for r in rows:
+                ends.append(ends[-1] + len(r.b))
+            packed = (
+                np.concatenate([r.A for r in rows]), np.concatenate([r.b for r in rows]),
+                np.concatenate([r.kind for r in rows]), np.array(ends[:-1], np.int64),
+                np.array(ends[1:], np.int64),
+            )  # fmt: skip
         changed, outs = certify_many(
-            u, yaws, velocities, np.concatenate([r.A for r in rows]),
-            np.concatenate([r.b for r in rows]), np.concatenate([r.kind for r in rows]), start,
-            self._lb3, self._ub3, *self._native,
-        )  # fmt: skip
+            u, yaws, velocities, *packed, self._lb3, self._ub3, *self._native
+        )
         share = (time.perf_counter() - t0) * 1e6 / max(m, 1)
         reports = []
         for j, was_changed in enumerate(changed.tolist()):
             if was_changed:
                 rep = self._changed_report(outs[j].tolist(), u[j], rows[j], neighbour_ids[j], t0)
+                rep.time_us = share
             else:
-                rep = ShieldReport("nominal", False, 0.0, 0.0, [], rows=rows[j],
-                                   neighbour_ids=neighbour_ids[j])  # fmt: skip
-            rep.time_us = share
+                rep = _nominal_report(rows[j], neighbour_ids[j], share)
             reports.append(rep)
         return outs[:, :4].copy(), reports
 
@@ -614,6 +619,21 @@ class SafetyFilter:
 
 _ZEROS3 = np.zeros(3)
 _N_KINDS = len(KIND_NAMES)
+_NOMINAL = {
+    f.name: f.default if f.default_factory is MISSING else None for f in fields(ShieldReport)
+}
+
+
+def _nominal_report(rows: CBFRows, ids: tuple[int, ...] | None, time_us: float) -> ShieldReport:
+    """`ShieldReport` of an unchanged action (the dataclass's fields set directly: one per UAV
+    and step)."""
+    rep = object.__new__(ShieldReport)
+    rep.__dict__.update(_NOMINAL)
+    rep.__dict__.update(
+        status="nominal", active=False, correction_norm=0.0, slack=0.0, active_rows=[],
+        gave_up=[], slack_per_row={}, time_us=time_us, rows=rows, neighbour_ids=ids,
+    )  # fmt: skip
+    return rep
 
 
 def _checked_nominal(u_nominal: np.ndarray, ctx: SafetyContext) -> np.ndarray:

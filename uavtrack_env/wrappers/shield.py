@@ -164,7 +164,7 @@ class CBFShield(BaseParallelWrapper):
             "hard_violation": rep.hard_violation,
             "min_h": min_h,
             "min_hard_h": min_hard_h,
-            "has_target_estimate": self.onboard[agent].tracker.estimate is not None,
+            "has_target_estimate": self.onboard[agent].tracker.has_estimate,
         }
 
     def _episode_summary(self, agent: str) -> dict[str, float]:
