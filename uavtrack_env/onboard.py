@@ -26,10 +26,10 @@ from .estimation.bank import TrackerBank
 from .geometry import world_to_cam_vec
 from .onboard_pass import (
     BOX_COLUMNS,
+    PassOutput,
     TeamState,
     believe,
     car_box_arrays,
-    max_rows,
     observe_pass,
     take_and_believe,
     take_messages,
@@ -43,7 +43,6 @@ from .safety import (
     ShieldReport,
     shield_cbf,
 )
-from .safety.barrier_rows import N_FAMILIES
 from .scenarios import Layout
 from .target import CAR_HALF_EXTENTS
 
@@ -394,7 +393,7 @@ class OnboardAgent:
         """The team-mates as believed at the latest observation (None before one)."""
         if self._belief is None and self._seen is not None:
             out, j = self._seen
-            bi, bf = out[5][j], out[6][j]
+            bi, bf = out.belief_ints[j], out.belief_floats[j]
             k = int(bi[0])
             motion, radii = bf[: 6 * k].reshape(2, k, 3), bf[6 * k : 8 * k].reshape(2, k)
             self._belief = self.neighbours.wrap((bi[1 : 1 + 2 * k].reshape(2, k), motion, radii))
@@ -435,7 +434,7 @@ class OnboardAgent:
                     f"{self.name}: no observation yet; call observe(info) after reset"
                 )
             out, j = self._seen
-            belief, own, box = self.belief, self.info["own"], out[7][j]
+            belief, own, box = self.belief, self.info["own"], out.box[j]
             if not self.tracker.has_estimate:  # no estimate: no target rows
                 target: dict = {
                     "target_velocity": np.zeros(3),
@@ -474,8 +473,8 @@ class OnboardAgent:
             if self._seen is None:
                 self.context()  # raises: no observation yet
             out, j = self._seen
-            A, floats, ints, start, sizes = out[:5]
-            a, b = start[j], start[j + 1]
+            A, floats, ints, sizes = out.A, out.floats, out.ints, out.sizes
+            a, b = out.start[j], out.start[j + 1]
             builder = self.filter.row_builder
             ctx = self.context() if builder.lag_tau > 0.0 else None
             self._rows = builder.stack(A[a:b], floats[:, a:b], ints[:, a:b], sizes[j], ctx)
@@ -496,7 +495,7 @@ class OnboardAgent:
     def neighbour_ids(self) -> tuple[int, ...]:
         """The team indices of the team-mates believed at the latest observation (they name
         the rows: 'uav:<id>')."""
-        bi = self._seen[0][5][self._seen[1]] if self._seen is not None else None
+        bi = self._seen[0].belief_ints[self._seen[1]] if self._seen is not None else None
         if bi is not None and int(bi[0]) == len(self.neighbours._all[1]):
             return self.neighbours._all[1]
         return self.belief.ids
@@ -512,9 +511,13 @@ def certify_team(
     out = agents[0]._seen[0]
     if all(agent._seen[0] is out for agent in agents):  # one pass: its arrays as they are
         js = np.array([agent._seen[1] for agent in agents])
-        data, start = out[8], out[3]
-        packed = (out[0], out[1][0], out[2][0], start[js], start[js + 1])
-        return agents[0].filter.certify_many(u, data[js, 3], data[js, 4:7], rows, ids, packed)
+        packed = (out.A, out.floats[0], out.ints[0], out.start[js], out.start[js + 1])
+        safe, reports = agents[0].filter.certify_many(
+            u, out.data[js, 3], out.data[js, 4:7], rows, ids, packed
+        )
+        for rep, lows in zip(reports, out.lows[js].tolist(), strict=True):
+            rep.lows = lows
+        return safe, reports
     own = [agent.info["own"] for agent in agents]
     return agents[0].filter.certify_many(
         u,
@@ -576,21 +579,14 @@ def _observe_pass(agents: list[OnboardAgent], infos: list[dict], inputs: list[tu
                 ks.append(k)
                 heard.append(pos)
         msg_start[j + 1] = len(ks)
-    mates, rows = team.n - 1, m * max_rows(team.n - 1, team.obs_c.shape[1])
-    out = (
-        np.empty((rows, 3)), np.empty((5, rows)), np.empty((2, rows), np.int64),
-        np.empty(m + 1, np.int64), np.zeros((m, N_FAMILIES + 1), np.int64),
-        np.zeros((m, 1 + 2 * mates), np.int64), np.zeros((m, 8 * mates)),
-        np.empty((m, BOX_COLUMNS)),
-    )  # fmt: skip
+    out = PassOutput.allocate(data, team.n - 1, team.obs_c.shape[1])
     observe_pass(
         slots, slots // team.n, data, msg_start, np.array(ks, np.int64),
         np.array(heard, float) if heard else _NO_POSITIONS, *_estimate_arrays(agents),
-        team.nb_p, team.nb_v,
-        team.nb_err, team.nb_age, team.nb_known, team.uncut, team.cut_steps, team.anchor,
-        team.has_anchor, team.obs_c, team.obs_h, team.obs_n, *agents[0]._pass_params, *out,
+        team.nb_p, team.nb_v, team.nb_err, team.nb_age, team.nb_known, team.uncut,
+        team.cut_steps, team.anchor, team.has_anchor, team.obs_c, team.obs_h, team.obs_n,
+        *agents[0]._pass_params, *out[1:],
     )  # fmt: skip
-    out += (data,)
     for j, (agent, info) in enumerate(zip(agents, infos, strict=True)):
         agent.info, agent._seen = info, (out, j)
         agent._belief, agent._context, agent._rows = None, None, None

@@ -14,11 +14,14 @@ neighbour tables, the cut-box spells, the car box's anchor, and each world's obs
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numba
 import numpy as np
 
 from .safety.barrier_rows import N_FAMILIES, all_rows
+from .safety.cbf import CONNECT
+from .safety.qp_arrays import family_lows
 from .target import CAR_HALF_EXTENTS
 
 CAR_DIAG = math.hypot(*CAR_HALF_EXTENTS[:2].tolist())
@@ -150,7 +153,7 @@ def observe_pass(
     slots, worlds, data, msg_start, msg_k, msg_pos, est_slots, est_x, est_P, est_ready,
     est_counts, nb_p, nb_v, nb_err, nb_age, nb_known, uncut, cut_steps, anchor, has_anchor,
     obs_c, obs_h, obs_n, table_p, box_p, row_p, flags, gammas, margins,
-    out_A, out_f, out_i, out_start, out_sizes, out_belief_i, out_belief_f, out_box,
+    out_A, out_f, out_i, out_start, out_sizes, out_belief_i, out_belief_f, out_box, out_lows,
 ):  # fmt: skip  # pragma: no cover (compiled)
     """One step of what the UAVs ``slots`` (worlds ``worlds``) know, in place, and their rows.
 
@@ -171,7 +174,8 @@ def observe_pass(
     ``out_f`` (5, .) = [b, h, gamma, drift, margin] and ``out_i`` (2, .) = [kind, index], its
     family sizes ``out_sizes[j]``; its believed team-mates ``out_belief_i[j]`` = [count, table
     indices..., ages...] and ``out_belief_f[j]`` = [positions (3 k), velocities (3 k), radii
-    (k), velocity radii (k)]; its car box ``out_box[j]`` (`BOX_COLUMNS`, NaN without estimate).
+    (k), velocity radii (k)]; its car box ``out_box[j]`` (`BOX_COLUMNS`, NaN without estimate);
+    the least h of each row family, then of the hard rows, ``out_lows[j]`` (`family_lows`).
     """
     dt, accel, speed = table_p[0], table_p[1], table_p[2]
     timeout, believe_accel = int(table_p[3]), table_p[4]
@@ -238,8 +242,37 @@ def observe_pass(
         out_f[:, r : r + n] = floats
         out_i[:, r : r + n] = ints2
         out_sizes[j, : N_FAMILIES + 1] = sizes
+        out_lows[j] = family_lows(ints2[0], floats[1], N_FAMILIES + 1, CONNECT)
         r += n
     out_start[slots.shape[0]] = r
+
+
+class PassOutput(NamedTuple):
+    """`observe_pass`'s input rows and outputs for m UAVs (its docstring)."""
+
+    data: np.ndarray
+    """(m, 15) the UAVs' `estimation.bank.INPUT_COLUMNS` rows."""
+    A: np.ndarray
+    floats: np.ndarray
+    ints: np.ndarray
+    start: np.ndarray
+    sizes: np.ndarray
+    belief_ints: np.ndarray
+    belief_floats: np.ndarray
+    box: np.ndarray
+    lows: np.ndarray
+
+    @classmethod
+    def allocate(cls, data: np.ndarray, n_mates: int, n_obstacles: int) -> PassOutput:
+        """Room for the outputs of ``len(data)`` UAVs."""
+        m = len(data)
+        rows = m * max_rows(n_mates, n_obstacles)
+        return cls(
+            data, np.empty((rows, 3)), np.empty((5, rows)), np.empty((2, rows), np.int64),
+            np.empty(m + 1, np.int64), np.zeros((m, N_FAMILIES + 1), np.int64),
+            np.zeros((m, 1 + 2 * n_mates), np.int64), np.zeros((m, 8 * n_mates)),
+            np.empty((m, BOX_COLUMNS)), np.empty((m, N_FAMILIES + 2)),
+        )  # fmt: skip
 
 
 class TeamState:

@@ -186,6 +186,8 @@ class ShieldReport:
     rows: CBFRows | None = field(default=None, repr=False)
     """The rows of this call (global frame), for logging."""
     neighbour_ids: tuple[int, ...] | None = field(default=None, repr=False)
+    lows: list[float] | None = field(default=None, repr=False)
+    """`qp_arrays.family_lows` of ``rows`` if the caller has it (`family_minima` reads it)."""
 
     @property
     def min_hard_h(self) -> float:
@@ -210,7 +212,9 @@ class ShieldReport:
         """`qp_arrays.family_lows` of the rows (NaN: no such family), None without rows."""
         if self.rows is None or not len(self.rows.h):
             return None
-        return family_lows(self.rows.kind, self.rows.h, _N_KINDS, CONNECT).tolist()
+        if self.lows is None:
+            self.lows = family_lows(self.rows.kind, self.rows.h, _N_KINDS, CONNECT).tolist()
+        return self.lows
 
     @property
     def h(self) -> dict[str, float]:
