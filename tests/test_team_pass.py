@@ -1,0 +1,115 @@
+"""A team's onboard step in two compiled calls (`onboard.observe_team`, `onboard.certify_team`)
+equals each UAV's own stack, UAV by UAV and bit for bit."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from uavtrack_env import uavtrack_v0
+from uavtrack_env.onboard import certify_team
+from uavtrack_env.presets import expert_config
+from uavtrack_env.wrappers import CBFShield
+
+WORLD = {
+    "scenario": "random",
+    "n_uavs": 4,
+    "max_cycles": 120,
+    "detector": {"dropout_prob": 0.2},
+    "comms": {"drop_prob": 0.3},
+    "terminate_on_collision": "agent",
+}
+
+
+def _same_report(a, b) -> None:
+    for name in ("status", "active", "correction_norm", "slack", "active_rows", "gave_up",
+                 "hard_violation", "slack_per_row", "solver", "solver_calls"):  # fmt: skip
+        assert getattr(a, name) == getattr(b, name), name
+    assert a.family_minima() == b.family_minima()
+
+
+@pytest.mark.parametrize("dynamics", ["integrator", "lag"])
+def test_the_team_certifies_as_each_uav_alone(dynamics):
+    """`certify_team` (the pass's own arrays, and rows gathered from several passes) gives every
+    UAV the action and report its own `certify_trusted` gives, for commands the shield keeps and
+    corrects (every status of the layers: tests/test_qp_layers.py)."""
+    env = uavtrack_v0.parallel_env(**WORLD, dynamics={"model": dynamics})
+    shield = CBFShield(env)
+    _, infos = shield.reset(seed=11)
+    rng = np.random.default_rng(2)
+    scale = env.config.limits.scale
+    statuses: list[str] = []
+    while env.agents:
+        agents = [shield.onboard[a] for a in infos]
+        u = rng.uniform(-1.5, 1.5, (len(agents), 4)) * scale * rng.choice([0.02, 1.0])
+        together, reports = certify_team(agents, u)
+        rows = [a.rows() for a in agents]
+        own = [a.info["own"] for a in agents]
+        gathered, gathered_reports = agents[0].filter.certify_many(
+            u, np.array([o["yaw"] for o in own]), np.array([o["velocity"] for o in own]), rows,
+            [a.neighbour_ids() for a in agents],
+        )  # fmt: skip
+        for j, agent in enumerate(agents):
+            alone, report = agent.certify_trusted(u[j])
+            np.testing.assert_array_equal(together[j], alone)
+            np.testing.assert_array_equal(gathered[j], alone)
+            _same_report(reports[j], report)
+            _same_report(gathered_reports[j], report)
+            statuses.append(report.status)
+        infos = shield.step({a: rng.uniform(-1, 1, 4) for a in env.agents})[4]
+    assert statuses.count("nominal") > 20 and len(statuses) - statuses.count("nominal") > 20
+    env.close()
+
+
+def test_trackers_outside_a_bank_feed_the_pass_alike():
+    """With plain filterpy trackers (`UKFConfig.vectorized=False`) the pass takes the estimates
+    from the trackers: the rows equal those `RowBuilder` builds from the same context, and the
+    shield's actions stay within round-off of the bank's."""
+    cfg = expert_config("tuned")
+    plain = dataclasses.replace(cfg, ukf=dataclasses.replace(cfg.ukf, vectorized=False))
+    envs = [uavtrack_v0.parallel_env(**WORLD) for _ in range(2)]
+    shields = [CBFShield(envs[0], cfg), CBFShield(envs[1], plain)]
+    infos = [s.reset(seed=5)[1] for s in shields]
+    rng = np.random.default_rng(3)
+    compared = 0
+    for _ in range(60):
+        if not envs[1].agents:
+            break
+        for agent in infos[1]:
+            onboard = shields[1].onboard[agent]
+            assert onboard.tracker.bank is None
+            mine, theirs = onboard.rows(), onboard.filter.rows(onboard.context())
+            np.testing.assert_array_equal(mine.A, theirs.A)
+            np.testing.assert_array_equal(mine.b, theirs.b)
+            compared += onboard.tracker.has_estimate
+        actions = {a: rng.uniform(-0.3, 0.3, 4) for a in envs[1].agents}
+        outs = [s.step(dict(actions)) for s in shields]
+        infos = [o[4] for o in outs]
+        for a in infos[1]:
+            np.testing.assert_allclose(
+                infos[1][a]["shield"]["action"], infos[0][a]["shield"]["action"], atol=1e-6
+            )
+    assert compared > 50
+    for env in envs:
+        env.close()
+
+
+def test_estimates_are_made_once_per_step():
+    """A bank's estimate is made when first read, the same object on every read within its step,
+    and a new one after the next step; earlier estimates keep their values."""
+    env = uavtrack_v0.parallel_env(scenario="A")
+    shield = CBFShield(env)
+    shield.reset(seed=0)
+    tracker = shield.onboard["uav_0"].tracker
+    first = tracker.estimate
+    assert first is not None and tracker.estimate is first and tracker.has_estimate
+    kept = first.target_position.copy()
+    shield.step({a: np.zeros(4) for a in env.agents})
+    second = tracker.estimate
+    assert second is not first and second is tracker.bank.estimates[tracker.slot]
+    np.testing.assert_array_equal(first.target_position, kept)
+    tracker.reset()
+    assert tracker.estimate is None and not tracker.has_estimate
+    env.close()
