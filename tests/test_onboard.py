@@ -238,7 +238,7 @@ def test_bank_trackers_equal_plain_filterpy_trackers_on_an_episode():
     detection."""
     import dataclasses
 
-    from uavtrack_env.onboard import OnboardTracker, onboard_team, update_trackers
+    from uavtrack_env.onboard import OnboardTracker, input_row, onboard_team, update_trackers
     from uavtrack_env.presets import expert_config
 
     env = uavtrack_v0.parallel_env(**WORLD)
@@ -253,8 +253,9 @@ def test_bank_trackers_equal_plain_filterpy_trackers_on_an_episode():
     compared = 0
     while env.agents:
         live = [names.index(a) for a in infos]
-        update_trackers([team[i] for i in live], list(infos.values()))
-        update_trackers([plain[i] for i in live], list(infos.values()))
+        data = np.array([input_row(info) for info in infos.values()])
+        update_trackers([team[i] for i in live], data)
+        update_trackers([plain[i] for i in live], data)
         for i in live:
             b, p = team[i].estimate, plain[i].estimate
             assert (b is None) == (p is None)

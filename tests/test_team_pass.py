@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from uavtrack_env import uavtrack_v0
-from uavtrack_env.onboard import certify_team
+from uavtrack_env.onboard import certify_team, input_row, input_rows
 from uavtrack_env.presets import expert_config
 from uavtrack_env.wrappers import CBFShield
 
@@ -112,4 +112,26 @@ def test_estimates_are_made_once_per_step():
     np.testing.assert_array_equal(first.target_position, kept)
     tracker.reset()
     assert tracker.estimate is None and not tracker.has_estimate
+    env.close()
+
+
+def test_input_rows_of_arrays_equal_those_of_infos():
+    """`input_rows` (the detector's frame and the UAVs' state as arrays, the vector shield's
+    route) gives each UAV the row `input_row` reads from its info, bit for bit, detected or
+    not, with boxes cut by the image border."""
+    env = uavtrack_v0.parallel_env(**WORLD)
+    _, infos = env.reset(seed=4)
+    rng = np.random.default_rng(5)
+    detected = cut = 0
+    for _ in range(80):
+        state = (env.position, env.yaw, env.velocity, env.yaw_rate)
+        rows = input_rows(env.last_detection, state)
+        for agent, info in infos.items():
+            np.testing.assert_array_equal(rows[env.possible_agents.index(agent)], input_row(info))
+            detected += info["measurement"]["detected"]
+            cut += bool(info["measurement"]["truncated_u"] or info["measurement"]["truncated_v"])
+        if not env.agents:
+            break
+        infos = env.step({a: rng.uniform(-1, 1, 4) for a in env.agents})[4]
+    assert detected > 50 and cut > 0
     env.close()

@@ -44,6 +44,7 @@ from .safety import (
     shield_cbf,
 )
 from .scenarios import Layout
+from .sensors import Detections
 from .target import CAR_HALF_EXTENTS
 
 
@@ -88,32 +89,26 @@ class OnboardTracker:
             self.bank.forget(self.slot)
 
 
-def update_trackers(
-    trackers: Sequence[OnboardTracker],
-    infos: Sequence[dict],
-    inputs: Sequence[tuple] | None = None,
-) -> None:
-    """Advance each UAV's filter with its info (measurement and own motion): the trackers of one
-    `TrackerBank` in one compiled call, plain-filterpy trackers one by one (their new estimates:
-    ``tracker.estimate``). ``inputs``: the infos' `_input_row`s, if the caller has them."""
-    if inputs is None:
-        inputs = [_input_row(info) for info in infos]
-    groups: dict[int, tuple[TrackerBank, list[OnboardTracker], list[tuple]]] = {}
-    for tracker, info, row in zip(trackers, infos, inputs, strict=True):
+def update_trackers(trackers: Sequence[OnboardTracker], data: np.ndarray) -> None:
+    """Advance each UAV's filter with its `bank.INPUT_COLUMNS` row ``data[j]`` (measurement
+    and own motion): the trackers of one `TrackerBank` in one compiled call, plain-filterpy
+    trackers one by one (their new estimates: ``tracker.estimate``)."""
+    groups: dict[int, tuple[TrackerBank, list[int], list[int]]] = {}
+    for j, tracker in enumerate(trackers):
         bank = tracker.bank
         if bank is None:
-            _step_alone(tracker, info)
+            _step_alone(tracker, data[j])
             continue
         group = groups.get(id(bank))
         if group is None:
             group = groups[id(bank)] = (bank, [], [])
-        group[1].append(tracker)
-        group[2].append(row)
-    for bank, members, rows in groups.values():
-        bank.step([t.slot for t in members], np.array(rows, float))
+        group[1].append(tracker.slot)
+        group[2].append(j)
+    for bank, slots, rows in groups.values():
+        bank.step(slots, data if len(rows) == len(data) else data[rows])
 
 
-def _input_row(info: dict) -> tuple:
+def input_row(info: dict) -> tuple:
     """A `TrackerBank` input row (`bank.INPUT_COLUMNS`) of one UAV's info."""
     own, m = info["own"], info["measurement"]
     x, y, z = own["position"].tolist()
@@ -125,23 +120,38 @@ def _input_row(info: dict) -> tuple:
     return (*state, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0)
 
 
-def _step_alone(tracker: OnboardTracker, info: dict) -> None:
-    """One plain-filterpy tracker's step (`TargetEstimator.reset`/`step`)."""
-    own, m = info["own"], info["measurement"]
-    pos, yaw = own["position"], own["yaw"]
+def input_rows(det: Detections, state: tuple[np.ndarray, ...]) -> np.ndarray:
+    """`bank.INPUT_COLUMNS` rows (..., 15) of a detector frame ``det`` and the UAVs' own state
+    (position, yaw, velocity, yaw rate), arrays with the same leading axes: what `input_row`
+    reads from each UAV's info (`env.sensor_infos`), without the dicts."""
+    position, yaw, velocity, yaw_rate = state
+    ok = det.detected
+    out = np.zeros((*ok.shape, 15))
+    out[..., 0:3], out[..., 3], out[..., 4:7], out[..., 7] = position, yaw, velocity, yaw_rate
+    out[..., 8] = ok
+    for c, values in ((9, det.u), (10, det.v), (11, det.depth), (12, det.psi)):
+        out[..., c] = np.where(ok, values, 0.0)
+    out[..., 11] = np.where(ok, det.depth, 1.0)
+    out[..., 13:15] = det.truncated & ok[..., None]
+    return out
+
+
+def _step_alone(tracker: OnboardTracker, row: np.ndarray) -> None:
+    """One plain-filterpy tracker's step (`TargetEstimator.reset`/`step`) from its
+    `bank.INPUT_COLUMNS` row."""
+    x, y, z, yaw, vx, vy, vz, yaw_rate, detected, u, v, depth, psi, cut_u, cut_v = row.tolist()
+    pos = np.array((x, y, z))
     meas = None
-    if m["detected"]:
-        meas = Measurement.trusted(
-            m["u"], m["v"], m["depth"], m["psi"], m["truncated_u"], m["truncated_v"]
-        )
+    if detected > 0.5:
+        meas = Measurement.trusted(u, v, depth, psi, cut_u > 0.5, cut_v > 0.5)
     est = tracker.estimator
     if tracker._estimate is None:
         if meas is not None:
             tracker._estimate = est.reset(meas, pos, yaw)
         return
     # The UAV's own velocity (IMU/odometry) in the camera frame, as applied over the step.
-    vx, vy, vz = world_to_cam_vec(own["velocity"], yaw).tolist()
-    u_meas = np.array((vx, vy, vz, -float(own["yaw_rate"])))
+    cx, cy, cz = world_to_cam_vec(np.array((vx, vy, vz)), yaw).tolist()
+    u_meas = np.array((cx, cy, cz, -yaw_rate))
     tracker._estimate = est.step(u_meas, pos, yaw, meas)
 
 
@@ -434,7 +444,7 @@ class OnboardAgent:
                     f"{self.name}: no observation yet; call observe(info) after reset"
                 )
             out, j = self._seen
-            belief, own, box = self.belief, self.info["own"], out.box[j]
+            belief, own, box = self.belief, out.data[j], out.box[j]
             if not self.tracker.has_estimate:  # no estimate: no target rows
                 target: dict = {
                     "target_velocity": np.zeros(3),
@@ -450,11 +460,11 @@ class OnboardAgent:
                     "target_growth": box[9:12],
                     "target_frustum": bool(box[12]),
                 }
-            # The env's own arrays, already float64 and finite: no re-validation.
+            # The pass's input rows, the env's own values, float64 and finite: no re-validation.
             self._context = SafetyContext.trusted(
-                position=own["position"],
-                yaw=float(own["yaw"]),
-                velocity=own["velocity"],
+                position=own[0:3],
+                yaw=float(own[3]),
+                velocity=own[4:7],
                 neighbours=belief.positions,
                 neighbour_velocities=belief.velocities if self._lag else None,
                 neighbour_radius=belief.position_radius,
@@ -487,10 +497,10 @@ class OnboardAgent:
 
     def certify_trusted(self, u: np.ndarray) -> tuple[np.ndarray, ShieldReport]:
         """`certify` without checks (`SafetyFilter.certify_trusted`)."""
-        rows, own = self.rows(), self.info["own"]
-        return self.filter.certify_pose(
-            u, float(own["yaw"]), own["velocity"], rows, self.neighbour_ids()
-        )
+        rows = self.rows()
+        out, j = self._seen
+        own = out.data[j]
+        return self.filter.certify_pose(u, float(own[3]), own[4:7], rows, self.neighbour_ids())
 
     def neighbour_ids(self) -> tuple[int, ...]:
         """The team indices of the team-mates believed at the latest observation (they name
@@ -518,14 +528,8 @@ def certify_team(
         for rep, lows in zip(reports, out.lows[js].tolist(), strict=True):
             rep.lows = lows
         return safe, reports
-    own = [agent.info["own"] for agent in agents]
-    return agents[0].filter.certify_many(
-        u,
-        np.array([o["yaw"] for o in own], float),
-        np.array([o["velocity"] for o in own], float).reshape(-1, 3),
-        rows,
-        ids,
-    )
+    own = np.array([agent._seen[0].data[agent._seen[1]] for agent in agents]).reshape(-1, 15)
+    return agents[0].filter.certify_many(u, own[:, 3], own[:, 4:7], rows, ids)
 
 
 def onboard_team(
@@ -548,47 +552,67 @@ def onboard_team(
 
 
 def observe_team(agents: Sequence[OnboardAgent], infos: Sequence[dict], rows: bool = False) -> None:
-    """`OnboardAgent.observe` for several UAVs: their UKFs in one batched pass, then everything
-    else they take from the step (messages, cut boxes, the car's box, the CBF rows) in one
-    `observe_pass` per `TeamState`. ``rows``: wrap each agent's rows now (a shield certifies
-    every agent at its next step)."""
-    inputs = [_input_row(info) for info in infos]
-    update_trackers([a.tracker for a in agents], infos, inputs)
+    """`OnboardAgent.observe` for several UAVs (`observe_arrays` of their infos)."""
+    n = max(agent.team.n for agent in agents) if agents else 0
+    heard, sent = np.zeros((len(agents), n), bool), np.zeros((len(agents), n, 3))
+    for j, (agent, info) in enumerate(zip(agents, infos, strict=True)):
+        table = agent.neighbours
+        for name, pos in info["neighbours"].items():
+            k = table.index(name)
+            if k is not None:
+                i = table._ids[k]
+                heard[j, i], sent[j, i] = True, pos
+    data = np.array([input_row(info) for info in infos], float).reshape(-1, 15)
+    observe_arrays(agents, data, heard, sent, rows, infos)
+
+
+def observe_arrays(
+    agents: Sequence[OnboardAgent],
+    data: np.ndarray,
+    heard: np.ndarray,
+    sent: np.ndarray,
+    rows: bool = False,
+    infos: Sequence[dict] | None = None,
+) -> None:
+    """What several UAVs take from a step: agent j's `bank.INPUT_COLUMNS` row ``data[j]``
+    (`input_rows`) and the messages it heard, ``heard[j, i]`` from team member i with position
+    ``sent[j, i]``. Their UKFs step in one batched pass, then everything else (messages, cut
+    boxes, the car's box, the CBF rows) in one `observe_pass` per `TeamState`. ``rows``: wrap
+    each agent's rows now (a shield certifies every agent at its next step); ``infos``: the
+    infos the rows came from (``agent.info``), if any."""
+    update_trackers([a.tracker for a in agents], data)
     groups: dict[int, list[int]] = {}
     for j, agent in enumerate(agents):
         groups.setdefault(id(agent.team), []).append(j)
     for members in groups.values():
-        _observe_pass([agents[j] for j in members], [infos[j] for j in members],
-                      [inputs[j] for j in members])  # fmt: skip
+        pick = members if len(members) < len(agents) else slice(None)
+        _observe_pass(
+            [agents[j] for j in members], data[pick], heard[pick], sent[pick],
+            None if infos is None else [infos[j] for j in members],
+        )  # fmt: skip
     if rows:
         for agent in agents:
             agent.rows()
 
 
-def _observe_pass(agents: list[OnboardAgent], infos: list[dict], inputs: list[tuple]) -> None:
+def _observe_pass(
+    agents: list[OnboardAgent],
+    data: np.ndarray,
+    heard: np.ndarray,
+    sent: np.ndarray,
+    infos: list[dict] | None,
+) -> None:
     """`observe_pass` for UAVs of one `TeamState` whose trackers have taken the step."""
-    team, m = agents[0].team, len(agents)
+    team = agents[0].team
     slots = np.array([a.slot for a in agents], np.int64)
-    data = np.array(inputs, float)
-    msg_start, ks, heard = np.zeros(m + 1, np.int64), [], []
-    for j, (agent, info) in enumerate(zip(agents, infos, strict=True)):
-        index = agent.neighbours._index
-        for name, pos in info["neighbours"].items():
-            k = index.get(name)
-            if k is not None:
-                ks.append(k)
-                heard.append(pos)
-        msg_start[j + 1] = len(ks)
     out = PassOutput.allocate(data, team.n - 1, team.obs_c.shape[1])
     observe_pass(
-        slots, slots // team.n, data, msg_start, np.array(ks, np.int64),
-        np.array(heard, float) if heard else _NO_POSITIONS, *_estimate_arrays(agents),
-        team.nb_p, team.nb_v, team.nb_err, team.nb_age, team.nb_known, team.uncut,
-        team.cut_steps, team.anchor, team.has_anchor, team.obs_c, team.obs_h, team.obs_n,
-        *agents[0]._pass_params, *out[1:],
+        slots, team.n, data, heard, sent, *_estimate_arrays(agents), team.nb_p, team.nb_v,
+        team.nb_err, team.nb_age, team.nb_known, team.uncut, team.cut_steps, team.anchor,
+        team.has_anchor, team.obs_c, team.obs_h, team.obs_n, *agents[0]._pass_params, *out[1:],
     )  # fmt: skip
-    for j, (agent, info) in enumerate(zip(agents, infos, strict=True)):
-        agent.info, agent._seen = info, (out, j)
+    for j, agent in enumerate(agents):
+        agent.info, agent._seen = None if infos is None else infos[j], (out, j)
         agent._belief, agent._context, agent._rows = None, None, None
 
 

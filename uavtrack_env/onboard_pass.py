@@ -150,16 +150,17 @@ def max_rows(n_mates: int, n_obstacles: int) -> int:
 
 @numba.njit(cache=True)
 def observe_pass(
-    slots, worlds, data, msg_start, msg_k, msg_pos, est_slots, est_x, est_P, est_ready,
-    est_counts, nb_p, nb_v, nb_err, nb_age, nb_known, uncut, cut_steps, anchor, has_anchor,
-    obs_c, obs_h, obs_n, table_p, box_p, row_p, flags, gammas, margins,
+    slots, team_n, data, heard, sent, est_slots, est_x, est_P, est_ready, est_counts,
+    nb_p, nb_v, nb_err, nb_age, nb_known, uncut, cut_steps, anchor, has_anchor, obs_c, obs_h,
+    obs_n, table_p, box_p, row_p, flags, gammas, margins,
     out_A, out_f, out_i, out_start, out_sizes, out_belief_i, out_belief_f, out_box, out_lows,
 ):  # fmt: skip  # pragma: no cover (compiled)
-    """One step of what the UAVs ``slots`` (worlds ``worlds``) know, in place, and their rows.
+    """One step of what the UAVs ``slots`` (slot = world team_n + index in its team) know,
+    in place, and their rows.
 
-    Inputs per UAV j: its `bank.INPUT_COLUMNS` row ``data[j]`` (own state, detector flags); its
-    messages ``msg_k/msg_pos[msg_start[j]:msg_start[j + 1]]`` (team-mate index in its table,
-    position); its estimate: row ``est_slots[j]`` of a `estimation.bank.TrackerBank`'s state
+    Inputs per UAV j: its `bank.INPUT_COLUMNS` row ``data[j]`` (own state, detector flags); the
+    messages it heard, ``heard[j, i]`` from team member i with position ``sent[j, i]``; its
+    estimate: row ``est_slots[j]`` of a `estimation.bank.TrackerBank`'s state
     (x, P, ready, counts: steps since detection first). State per slot: the neighbour tables
     ``nb_*`` (`NeighbourTable`), the cut-box spells ``uncut``/``cut_steps``, the car box's
     ``anchor`` (position, variances); per world: obstacles ``obs_c/obs_h[:obs_n]``.
@@ -187,17 +188,27 @@ def observe_pass(
     zeros3 = np.zeros(3)
     r = 0
     for j in range(slots.shape[0]):
-        s, w = slots[j], worlds[j]
+        s = slots[j]
+        w, me = s // team_n, s % team_n
         row = data[j]
         detected = row[8] > 0.5
         for axis in range(2):  # the spells of boxes cut by the image border (`car_box`)
             if detected:
                 uncut[s, axis] = 0 if row[13 + axis] > 0.5 else min(uncut[s, axis] + 1, recovery)
             cut_steps[s, axis] = cut_steps[s, axis] + 1 if uncut[s, axis] < recovery else 0
-        a, b = msg_start[j], msg_start[j + 1]
+        count = 0
+        for i in range(team_n):
+            count += i != me and heard[j, i]
+        ks, pos = np.empty(count, np.int64), np.empty((count, 3))
+        count = 0
+        for i in range(team_n):
+            if i != me and heard[j, i]:
+                ks[count] = i - (i > me)  # the index in its table, which skips itself
+                pos[count] = sent[j, i]
+                count += 1
         ints, motion, radii = take_and_believe(
-            msg_k[a:b], msg_pos[a:b], nb_p[s], nb_v[s], nb_err[s], nb_age[s], nb_known[s],
-            dt, accel, speed, timeout, believe_accel,
+            ks, pos, nb_p[s], nb_v[s], nb_err[s], nb_age[s], nb_known[s], dt, accel, speed,
+            timeout, believe_accel,
         )  # fmt: skip
         k = ints.shape[1]
         out_belief_i[j, 0] = k

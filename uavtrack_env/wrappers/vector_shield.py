@@ -12,7 +12,13 @@ from typing import Any
 
 import numpy as np
 
-from uavtrack_env.onboard import certify_team, observe_team, onboard_team
+from uavtrack_env.onboard import (
+    certify_team,
+    input_rows,
+    observe_arrays,
+    observe_team,
+    onboard_team,
+)
 from uavtrack_env.presets import ExpertConfig, expert_config
 from uavtrack_env.safety import ShieldReport
 from uavtrack_env.vector import UAVTrackVectorEnv
@@ -108,13 +114,27 @@ class VectorCBFShield:
 
     def _observe(self, worlds: list[int]) -> None:
         """The UAVs of these worlds that took part in the step take their new measurements (all
-        their UKFs in one batched pass)."""
+        their UKFs in one batched pass): from the batched step's arrays, or from the worlds'
+        infos where those are what the vector env keeps (``full_infos``, a world's reset)."""
+        venv = self.vector
+        batched = [k for k in worlds if venv._world_infos[k] is None and venv._sensed is not None]
+        if batched:
+            take = np.zeros(venv._stepped.shape, bool)
+            take[batched] = venv._stepped[batched]
+            ks, ids = np.nonzero(take)
+            m, position = venv._sensed, venv._state[0]
+            data = input_rows(m.detections, venv._state)[ks, ids]
+            agents = [self.onboard[k][i] for k, i in zip(ks.tolist(), ids.tolist(), strict=True)]
+            observe_arrays(agents, data, m.received[ks, ids], position[ks], rows=True)
         agents, infos = [], []
         for k in worlds:
-            for name, info in self.vector.sensor_infos(k).items():
+            if k in batched:
+                continue
+            for name, info in venv.sensor_infos(k).items():
                 agents.append(self.onboard[k][self._index[name]])
                 infos.append(info)
-        observe_team(agents, infos, rows=True)
+        if agents:
+            observe_team(agents, infos, rows=True)
 
     def _idle(self) -> tuple[list[dict[str, ShieldReport]], np.ndarray, np.ndarray]:
         zeros = np.zeros((self.num_envs, self.n_agents, 4))
