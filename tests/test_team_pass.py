@@ -44,19 +44,24 @@ def test_the_team_certifies_as_each_uav_alone(dynamics):
     while env.agents:
         agents = [shield.onboard[a] for a in infos]
         u = rng.uniform(-1.5, 1.5, (len(agents), 4)) * scale * rng.choice([0.02, 1.0])
-        together, reports = certify_team(agents, u)
+        together = certify_team(agents, u)
         rows = [a.rows() for a in agents]
         own = [a.info["own"] for a in agents]
-        gathered, gathered_reports = agents[0].filter.certify_many(
+        gathered = agents[0].filter.certify_many(
             u, np.array([o["yaw"] for o in own]), np.array([o["velocity"] for o in own]), rows,
             [a.neighbour_ids() for a in agents],
         )  # fmt: skip
         for j, agent in enumerate(agents):
             alone, report = agent.certify_trusted(u[j])
-            np.testing.assert_array_equal(together[j], alone)
-            np.testing.assert_array_equal(gathered[j], alone)
-            _same_report(reports[j], report)
-            _same_report(gathered_reports[j], report)
+            for done in (together, gathered):
+                np.testing.assert_array_equal(done.action[j], alone)
+                _same_report(done.report(j), report)
+                assert done.changed[j] == report.active
+                assert done.correction_norm[j] == report.correction_norm
+                assert done.hard_violation[j] == report.hard_violation
+                assert done.fallback[j] == (report.status == "fallback")
+                assert done.min_hard_h()[j] == report.min_hard_h
+            np.testing.assert_array_equal(together.report(j).rows.b, report.rows.b)
             statuses.append(report.status)
         infos = shield.step({a: rng.uniform(-1, 1, 4) for a in env.agents})[4]
     assert statuses.count("nominal") > 20 and len(statuses) - statuses.count("nominal") > 20

@@ -37,6 +37,7 @@ from .onboard_pass import (
 from .presets import ExpertConfig
 from .safety import (
     CBFRows,
+    Certificates,
     SafetyContext,
     SafetyFilter,
     ShieldMargins,
@@ -483,12 +484,14 @@ class OnboardAgent:
             if self._seen is None:
                 self.context()  # raises: no observation yet
             out, j = self._seen
-            A, floats, ints, sizes = out.A, out.floats, out.ints, out.sizes
-            a, b = out.start[j], out.start[j + 1]
             builder = self.filter.row_builder
-            ctx = self.context() if builder.lag_tau > 0.0 else None
-            self._rows = builder.stack(A[a:b], floats[:, a:b], ints[:, a:b], sizes[j], ctx)
-            floats[0, a:b] = self._rows.b  # second-order b: the pass's arrays hold the rows
+            if builder.lag_tau > 0.0:  # second-order b, into the pass's arrays
+                a, b = out.start[j], out.start[j + 1]
+                stacked = builder.stack(
+                    out.A[a:b], out.floats[:, a:b], out.ints[:, a:b], out.sizes[j], self.context()
+                )
+                out.floats[0, a:b] = stacked.b
+            self._rows = out.rows(j)
         return self._rows
 
     def certify(self, u_nominal: np.ndarray) -> tuple[np.ndarray, ShieldReport]:
@@ -511,25 +514,27 @@ class OnboardAgent:
         return self.belief.ids
 
 
-def certify_team(
-    agents: Sequence[OnboardAgent], u: np.ndarray
-) -> tuple[np.ndarray, list[ShieldReport]]:
+def certify_team(agents: Sequence[OnboardAgent], u: np.ndarray) -> Certificates:
     """`OnboardAgent.certify_trusted` of ``u[j]`` (m, 4) for each of m agents with one
-    configuration (`SafetyFilter.certify_many`: one compiled call)."""
-    rows = [agent.rows() for agent in agents]
+    configuration (`SafetyFilter.certify_many`: one compiled call); the reports are made when
+    read (`Certificates.report`)."""
+    if agents[0].filter.row_builder.lag_tau > 0.0:
+        for agent in agents:
+            agent.rows()  # their second-order b
     ids = [agent.neighbour_ids() for agent in agents]
     out = agents[0]._seen[0]
+    shield = agents[0].filter
     if all(agent._seen[0] is out for agent in agents):  # one pass: its arrays as they are
         js = np.array([agent._seen[1] for agent in agents])
         packed = (out.A, out.floats[0], out.ints[0], out.start[js], out.start[js + 1])
-        safe, reports = agents[0].filter.certify_many(
-            u, out.data[js, 3], out.data[js, 4:7], rows, ids, packed
+        js_list = js.tolist()
+        done = shield.certify_many(
+            u, out.data[js, 3], out.data[js, 4:7], lambda j: out.rows(js_list[j]), ids, packed
         )
-        for rep, lows in zip(reports, out.lows[js].tolist(), strict=True):
-            rep.lows = lows
-        return safe, reports
+        done.lows = out.lows[js]
+        return done
     own = np.array([agent._seen[0].data[agent._seen[1]] for agent in agents]).reshape(-1, 15)
-    return agents[0].filter.certify_many(u, own[:, 3], own[:, 4:7], rows, ids)
+    return shield.certify_many(u, own[:, 3], own[:, 4:7], [a.rows() for a in agents], ids)
 
 
 def onboard_team(

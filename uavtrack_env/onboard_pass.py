@@ -20,7 +20,7 @@ import numba
 import numpy as np
 
 from .safety.barrier_rows import N_FAMILIES, all_rows
-from .safety.cbf import CONNECT
+from .safety.cbf import CONNECT, CBFRows
 from .safety.qp_arrays import family_lows
 from .target import CAR_HALF_EXTENTS
 
@@ -272,6 +272,13 @@ class PassOutput(NamedTuple):
     belief_floats: np.ndarray
     box: np.ndarray
     lows: np.ndarray
+
+    def rows(self, j: int) -> CBFRows:
+        """UAV j's rows (views of the arrays; under the lag model their b once
+        `onboard.OnboardAgent.rows` has made the rows second order)."""
+        a, b = self.start[j], self.start[j + 1]
+        f, i = self.floats[:, a:b], self.ints[:, a:b]
+        return CBFRows(self.A[a:b], f[0], f[1], f[2], f[3], f[4], i[0], i[1])
 
     @classmethod
     def allocate(cls, data: np.ndarray, n_mates: int, n_obstacles: int) -> PassOutput:

@@ -18,6 +18,7 @@ from uavtrack_env.safety.config import CBFConfig
 from uavtrack_env.safety.margins import ShieldMargins, shield_cbf
 from uavtrack_env.safety.shield import (
     SOLVERS,
+    Certificates,
     SafetyFilter,
     ShieldOptions,
     ShieldReport,
@@ -29,6 +30,7 @@ __all__ = [
     "SOLVERS",
     "CBFConfig",
     "CBFRows",
+    "Certificates",
     "SafetyContext",
     "SafetyFilter",
     "ShieldMargins",

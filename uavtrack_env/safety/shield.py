@@ -51,6 +51,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Callable
 from dataclasses import MISSING, dataclass, field, fields
 from typing import Literal
 
@@ -370,22 +371,24 @@ class SafetyFilter:
         u: np.ndarray,
         yaws: np.ndarray,
         velocities: np.ndarray,
-        rows: list[CBFRows],
+        rows: list[CBFRows] | Callable[[int], CBFRows],
         neighbour_ids: list[tuple[int, ...] | None],
         packed: tuple | None = None,
-    ) -> tuple[np.ndarray, list[ShieldReport]]:
+    ) -> Certificates:
         """`certify_pose` of m UAVs' commands ``u`` (m, 4) with their yaws (m,), actual
-        velocities (m, 3), rows and row-naming ids: on 'daqp-direct' one compiled call
-        (`qp_layers.certify_many`; each report's ``time_us`` is its share of the call).
-        ``packed``: (A, b, kind, begin, end), arrays in which UAV j's rows are
-        ``[begin[j]:end[j]]``, if the caller has them."""
-        m = len(rows)
+        velocities (m, 3), rows (a list, or UAV j's by ``rows(j)``) and row-naming ids: on
+        'daqp-direct' one compiled call (`qp_layers.certify_many`). ``packed``: (A, b, kind,
+        begin, end), arrays in which UAV j's rows are ``[begin[j]:end[j]]`` (required when
+        ``rows`` is a callable)."""
+        m = len(neighbour_ids)
+        row = rows if callable(rows) else rows.__getitem__
         if self._native is None:
             done = [
-                self.certify_pose(u[j], float(yaws[j]), velocities[j], rows[j], neighbour_ids[j])
+                self.certify_pose(u[j], float(yaws[j]), velocities[j], row(j), neighbour_ids[j])
                 for j in range(m)
             ]
-            return np.array([d[0] for d in done]).reshape(m, 4), [d[1] for d in done]
+            return Certificates.of_reports(np.array([d[0] for d in done]).reshape(m, 4),
+                                           [d[1] for d in done])  # fmt: skip
         t0 = time.perf_counter()
         if packed is None:
             ends = [0]
@@ -400,15 +403,7 @@ class SafetyFilter:
             u, yaws, velocities, *packed, self._lb3, self._ub3, *self._native
         )
         share = (time.perf_counter() - t0) * 1e6 / max(m, 1)
-        reports = []
-        for j, was_changed in enumerate(changed.tolist()):
-            if was_changed:
-                rep = self._changed_report(outs[j].tolist(), u[j], rows[j], neighbour_ids[j], t0)
-                rep.time_us = share
-            else:
-                rep = _nominal_report(rows[j], neighbour_ids[j], share)
-            reports.append(rep)
-        return outs[:, :4].copy(), reports
+        return Certificates(self, u, changed, outs, row, neighbour_ids, share)
 
     def _certify(
         self,
@@ -626,6 +621,75 @@ _N_KINDS = len(KIND_NAMES)
 _NOMINAL = {
     f.name: f.default if f.default_factory is MISSING else None for f in fields(ShieldReport)
 }
+
+
+class Certificates:
+    """`SafetyFilter.certify_many`'s outcome for m UAVs: the certified commands and what each
+    report says as arrays (m,), the `ShieldReport`s themselves made when first read
+    (`report`, `reports`)."""
+
+    def __init__(
+        self,
+        shield: SafetyFilter,
+        u: np.ndarray,
+        changed: np.ndarray,
+        outs: np.ndarray,
+        rows: Callable[[int], CBFRows],
+        neighbour_ids: list[tuple[int, ...] | None],
+        share: float,
+    ) -> None:
+        self.action = outs[:, :4].copy()
+        """(m, 4) the certified commands."""
+        self.changed = changed
+        """(m,) the command was changed (``ShieldReport.active``)."""
+        self.correction_norm = np.where(changed, outs[:, 11], 0.0)
+        self.hard_violation = np.where(changed, outs[:, 8], 0.0)
+        self.fallback = changed & (outs[:, 4] == LAYER_STATUS.index("fallback"))
+        """(m,) status 'fallback' (braking included)."""
+        self.lows: np.ndarray | None = None
+        """(m, 7) `qp_arrays.family_lows` of each UAV's rows, if the caller set them."""
+        self._made: list[ShieldReport | None] = [None] * len(changed)
+        self._args = (shield, u, outs, rows, neighbour_ids, share)
+
+    @classmethod
+    def of_reports(cls, action: np.ndarray, reports: list[ShieldReport]) -> Certificates:
+        """The certificates of reports already made (the qpsolvers backends)."""
+        self = object.__new__(cls)
+        self.action, self._made, self._args = action, list(reports), None
+        self.changed = np.array([r.active for r in reports], bool)
+        self.correction_norm = np.array([r.correction_norm for r in reports], float)
+        self.hard_violation = np.array([r.hard_violation for r in reports], float)
+        self.fallback = np.array([r.status == "fallback" for r in reports], bool)
+        self.lows = None
+        return self
+
+    def __len__(self) -> int:
+        return len(self._made)
+
+    def min_hard_h(self) -> np.ndarray:
+        """(m,) each UAV's least hard barrier value (inf without hard rows)."""
+        if self.lows is not None:
+            return self.lows[:, -1].copy()
+        return np.array([self.report(j).min_hard_h for j in range(len(self))], float)
+
+    def report(self, j: int) -> ShieldReport:
+        """UAV j's `ShieldReport`."""
+        rep = self._made[j]
+        if rep is None:
+            shield, u, outs, rows, ids, share = self._args
+            if self.changed[j]:
+                rep = shield._changed_report(outs[j].tolist(), u[j], rows(j), ids[j], 0.0)
+                rep.time_us = share
+            else:
+                rep = _nominal_report(rows(j), ids[j], share)
+            if self.lows is not None:
+                rep.lows = self.lows[j].tolist()
+            self._made[j] = rep
+        return rep
+
+    def reports(self) -> list[ShieldReport]:
+        """Every UAV's `ShieldReport`."""
+        return [self.report(j) for j in range(len(self))]
 
 
 def _nominal_report(rows: CBFRows, ids: tuple[int, ...] | None, time_us: float) -> ShieldReport:

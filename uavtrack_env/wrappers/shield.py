@@ -116,8 +116,9 @@ class CBFShield(BaseParallelWrapper):
         u_safe = u.copy()
         reports = {}
         if names:
-            u_safe[live], done = certify_team([self.onboard[a] for a in names], u[live])
-            reports = dict(zip(names, done, strict=True))
+            done = certify_team([self.onboard[a] for a in names], u[live])
+            u_safe[live] = done.action
+            reports = dict(zip(names, done.reports(), strict=True))
         certified = np.clip(u_safe / self._scale, -1.0, 1.0)
         # An unchanged action is passed through as given (bit-identical behaviour).
         changed = [self._ids[a] for a, rep in reports.items() if rep.active]

@@ -20,7 +20,7 @@ from uavtrack_env.onboard import (
     onboard_team,
 )
 from uavtrack_env.presets import ExpertConfig, expert_config
-from uavtrack_env.safety import ShieldReport
+from uavtrack_env.safety import Certificates, ShieldReport
 from uavtrack_env.vector import UAVTrackVectorEnv
 from uavtrack_env.wrappers.shield import warn_if_lag_unaware
 
@@ -36,7 +36,7 @@ class VectorCBFShield:
     ``correction_norm`` (SI units, camera frame), ``fallback``, ``hard_violation`` and
     ``min_hard_h`` (inf without hard rows), and (K, n, 4) ``proposed`` and ``action`` (the
     certified action the world applies), normalised; zeros for inactive rows.
-    ``last_reports[k]`` keeps each agent's `ShieldReport` of the step.
+    ``last_reports[k]`` holds each agent's `ShieldReport` of the step (made when read).
     """
 
     def __init__(self, venv: UAVTrackVectorEnv, config: ExpertConfig | str | None = None) -> None:
@@ -48,7 +48,7 @@ class VectorCBFShield:
         warn_if_lag_unaware(env_cfg, cfg)
         names = venv.possible_agents
         self.onboard = onboard_team(names, env_cfg, cfg, venv.num_envs)
-        self.last_reports: list[dict[str, ShieldReport]] = [{} for _ in range(venv.num_envs)]
+        self._certified: tuple[np.ndarray, Certificates | None] = (np.zeros((0, 2), np.int64), None)
         for name in (
             "num_envs", "possible_agents", "n_agents", "envs", "metadata",
             "single_observation_space", "single_action_space", "observation_space",
@@ -64,7 +64,9 @@ class VectorCBFShield:
         obs, infos = self.vector.reset(seed=seed, options=options)
         for k in range(self.num_envs):
             self._restart(k)
-        infos["shield"] = self._telemetry(*self._idle())
+        self._certified = (np.zeros((0, 2), np.int64), None)
+        zeros = np.zeros((self.num_envs, self.n_agents, 4))
+        infos["shield"] = self._telemetry(zeros, zeros.copy())
         return obs, infos
 
     def step(self, actions: Any):
@@ -72,28 +74,35 @@ class VectorCBFShield:
         active = self.vector._active
         u_safe = u.copy()
         changed = np.zeros(active.shape, bool)
-        reports = [{} for _ in range(self.num_envs)]
         live = np.argwhere(active)
+        done = None
         if len(live):
             ks, ids = live[:, 0], live[:, 1]
-            agents = [self.onboard[k][i] for k, i in live.tolist()]
-            u_safe[ks, ids], certified = certify_team(agents, u[ks, ids])
-            for agent, k, i, rep in zip(agents, ks.tolist(), ids.tolist(), certified, strict=True):
-                reports[k][agent.name] = rep
-                changed[k, i] = rep.active
+            done = certify_team([self.onboard[k][i] for k, i in live.tolist()], u[ks, ids])
+            u_safe[ks, ids], changed[ks, ids] = done.action, done.changed
         certified = np.clip(u_safe / self._scale, -1.0, 1.0)
         # An unchanged action is passed on as given: the world applies exactly what it would.
         applied = np.where(changed[..., None], certified, np.asarray(actions, np.float64))
         obs, rewards, terms, truncs, infos = self.vector.step(applied)
         infos["action_clipped"] = clipped & active
-        self.last_reports = reports
-        live = active[..., None]
-        infos["shield"] = self._telemetry(reports, u / self._scale * live, certified * live)
+        self._certified = (live, done)
+        shown = active[..., None]
+        infos["shield"] = self._telemetry(u / self._scale * shown, certified * shown)
         ended = infos.get("_final_obs", np.zeros(self.num_envs, bool))
         self._observe([k for k in range(self.num_envs) if not ended[k]])
         for k in np.flatnonzero(ended):
             self._restart(k)
         return obs, rewards, terms, truncs, infos
+
+    @property
+    def last_reports(self) -> list[dict[str, ShieldReport]]:
+        """Each world's `ShieldReport` by agent of the latest step (made when read)."""
+        reports: list[dict[str, ShieldReport]] = [{} for _ in range(self.num_envs)]
+        live, done = self._certified
+        if done is not None:
+            for j, (k, i) in enumerate(live.tolist()):
+                reports[k][self.possible_agents[i]] = done.report(j)
+        return reports
 
     def close(self) -> None:
         self.vector.close()
@@ -136,14 +145,8 @@ class VectorCBFShield:
         if agents:
             observe_team(agents, infos, rows=True)
 
-    def _idle(self) -> tuple[list[dict[str, ShieldReport]], np.ndarray, np.ndarray]:
-        zeros = np.zeros((self.num_envs, self.n_agents, 4))
-        return [{} for _ in range(self.num_envs)], zeros, zeros.copy()
-
-    def _telemetry(
-        self, reports: list[dict[str, ShieldReport]], proposed: np.ndarray, action: np.ndarray
-    ) -> dict[str, np.ndarray]:
-        """``infos["shield"]`` (class docstring) from the step's reports."""
+    def _telemetry(self, proposed: np.ndarray, action: np.ndarray) -> dict[str, np.ndarray]:
+        """``infos["shield"]`` (class docstring) from the step's certificates."""
         shape = (self.num_envs, self.n_agents)
         out = {
             "active": np.zeros(shape, bool),
@@ -152,14 +155,11 @@ class VectorCBFShield:
             "hard_violation": np.zeros(shape),
             "min_hard_h": np.full(shape, np.inf),
         }
-        index = self._index
-        for k, world in enumerate(reports):
-            for name, rep in world.items():
-                i = index[name]
-                out["active"][k, i] = rep.active
-                out["correction_norm"][k, i] = rep.correction_norm
-                out["fallback"][k, i] = rep.status == "fallback"
-                out["hard_violation"][k, i] = rep.hard_violation
-                out["min_hard_h"][k, i] = rep.min_hard_h
+        live, done = self._certified
+        if done is not None:
+            at = live[:, 0], live[:, 1]
+            out["active"][at], out["correction_norm"][at] = done.changed, done.correction_norm
+            out["fallback"][at], out["hard_violation"][at] = done.fallback, done.hard_violation
+            out["min_hard_h"][at] = done.min_hard_h()
         out["proposed"], out["action"] = proposed, action
         return out
