@@ -208,6 +208,8 @@ class UAVTrackEnv(ParallelEnv):
         self.np_random: np.random.Generator | None = None
         self.layout: Layout | None = None
         self.last_detection: Detections | None = None
+        self.last_received: np.ndarray | None = None
+        """(n, n) bool: UAV i heard UAV j's message at the latest step or reset."""
         self.num_cycles = 0
 
     # ----------------------------------------------------------------- spaces
@@ -304,10 +306,10 @@ class UAVTrackEnv(ParallelEnv):
         return m, self._score(m, u)
 
     def _view(self, m: Measurements, score: Score) -> tuple[Measurements, Score]:
-        """This world's measurements and score from its batch of one (and its detections as
-        ``last_detection``)."""
+        """This world's measurements and score from its batch of one (and its detections and
+        messages as ``last_detection``, ``last_received``)."""
         view = m.world(0, self._obstacles.counts[0])
-        self.last_detection = view.detections
+        self.last_detection, self.last_received = view.detections, view.received
         return view, score.world(0)
 
     def validate_actions(self, actions: dict[str, Any]) -> tuple[np.ndarray, np.ndarray]:

@@ -556,7 +556,7 @@ def onboard_team(
     ]
 
 
-def observe_team(agents: Sequence[OnboardAgent], infos: Sequence[dict], rows: bool = False) -> None:
+def observe_team(agents: Sequence[OnboardAgent], infos: Sequence[dict]) -> None:
     """`OnboardAgent.observe` for several UAVs (`observe_arrays` of their infos)."""
     n = max(agent.team.n for agent in agents) if agents else 0
     heard, sent = np.zeros((len(agents), n), bool), np.zeros((len(agents), n, 3))
@@ -568,7 +568,7 @@ def observe_team(agents: Sequence[OnboardAgent], infos: Sequence[dict], rows: bo
                 i = table._ids[k]
                 heard[j, i], sent[j, i] = True, pos
     data = np.array([input_row(info) for info in infos], float).reshape(-1, 15)
-    observe_arrays(agents, data, heard, sent, rows, infos)
+    observe_arrays(agents, data, heard, sent, infos)
 
 
 def observe_arrays(
@@ -576,14 +576,12 @@ def observe_arrays(
     data: np.ndarray,
     heard: np.ndarray,
     sent: np.ndarray,
-    rows: bool = False,
     infos: Sequence[dict] | None = None,
 ) -> None:
     """What several UAVs take from a step: agent j's `bank.INPUT_COLUMNS` row ``data[j]``
     (`input_rows`) and the messages it heard, ``heard[j, i]`` from team member i with position
     ``sent[j, i]``. Their UKFs step in one batched pass, then everything else (messages, cut
-    boxes, the car's box, the CBF rows) in one `observe_pass` per `TeamState`. ``rows``: wrap
-    each agent's rows now (a shield certifies every agent at its next step); ``infos``: the
+    boxes, the car's box, the CBF rows) in one `observe_pass` per `TeamState`. ``infos``: the
     infos the rows came from (``agent.info``), if any."""
     update_trackers([a.tracker for a in agents], data)
     groups: dict[int, list[int]] = {}
@@ -595,9 +593,6 @@ def observe_arrays(
             [agents[j] for j in members], data[pick], heard[pick], sent[pick],
             None if infos is None else [infos[j] for j in members],
         )  # fmt: skip
-    if rows:
-        for agent in agents:
-            agent.rows()
 
 
 def _observe_pass(

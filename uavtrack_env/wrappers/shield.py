@@ -25,7 +25,13 @@ from pettingzoo.utils.wrappers import BaseParallelWrapper
 
 from uavtrack_env.config import EnvConfig
 from uavtrack_env.env import UAVTrackEnv
-from uavtrack_env.onboard import certify_team, observe_team, onboard_team
+from uavtrack_env.onboard import (
+    certify_team,
+    input_rows,
+    observe_arrays,
+    observe_team,
+    onboard_team,
+)
 from uavtrack_env.presets import ExpertConfig, expert_config
 from uavtrack_env.safety import SafetyContext, ShieldReport
 
@@ -191,5 +197,15 @@ class CBFShield(BaseParallelWrapper):
         return self.onboard[agent].context()
 
     def _observe(self, infos: dict[str, dict]) -> None:
-        """Feed every live agent's onboard stack with its new info (UKFs in one pass)."""
-        observe_team([self.onboard[a] for a in infos], list(infos.values()), rows=True)
+        """Feed every live agent's onboard stack with its new info (`onboard.observe_arrays`:
+        from the env's own arrays, what the infos hold, when no wrapper stands between)."""
+        agents = [self.onboard[a] for a in infos]
+        if self.env is not self._raw:
+            observe_team(agents, list(infos.values()))
+            return
+        raw = self._raw
+        rows = [self._ids[a] for a in infos]
+        state = (raw.position, raw.yaw, raw.velocity, raw.yaw_rate)
+        data = input_rows(raw.last_detection, state)[rows]
+        sent = np.repeat(raw.position[None], len(rows), axis=0)
+        observe_arrays(agents, data, raw.last_received[rows], sent, list(infos.values()))

@@ -134,7 +134,7 @@ class VectorCBFShield:
             m, position = venv._sensed, venv._state[0]
             data = input_rows(m.detections, venv._state)[ks, ids]
             agents = [self.onboard[k][i] for k, i in zip(ks.tolist(), ids.tolist(), strict=True)]
-            observe_arrays(agents, data, m.received[ks, ids], position[ks], rows=True)
+            observe_arrays(agents, data, m.received[ks, ids], position[ks])
         agents, infos = [], []
         for k in worlds:
             if k in batched:
@@ -143,7 +143,7 @@ class VectorCBFShield:
                 agents.append(self.onboard[k][self._index[name]])
                 infos.append(info)
         if agents:
-            observe_team(agents, infos, rows=True)
+            observe_team(agents, infos)
 
     def _telemetry(self, proposed: np.ndarray, action: np.ndarray) -> dict[str, np.ndarray]:
         """``infos["shield"]`` (class docstring) from the step's certificates."""
