@@ -33,7 +33,8 @@ def _same_report(a, b) -> None:
 @pytest.mark.parametrize("dynamics", ["integrator", "lag"])
 def test_the_team_certifies_as_each_uav_alone(dynamics):
     """`certify_team` (the pass's own arrays, and rows gathered from several passes) gives every
-    UAV the action and report its own `certify_trusted` gives, for commands the shield keeps and
+    UAV the action and report its own `certify_trusted` gives, and its summary (the telemetry,
+    read from the arrays) says what that report says, for commands the shield keeps and
     corrects (every status of the layers: tests/test_qp_layers.py)."""
     env = uavtrack_v0.parallel_env(**WORLD, dynamics={"model": dynamics})
     shield = CBFShield(env)
@@ -45,6 +46,7 @@ def test_the_team_certifies_as_each_uav_alone(dynamics):
         agents = [shield.onboard[a] for a in infos]
         u = rng.uniform(-1.5, 1.5, (len(agents), 4)) * scale * rng.choice([0.02, 1.0])
         together = certify_team(agents, u)
+        summaries = [together.summary(j) for j in range(len(agents))]  # before any report
         rows = [a.rows() for a in agents]
         own = [a.info["own"] for a in agents]
         gathered = agents[0].filter.certify_many(
@@ -62,6 +64,14 @@ def test_the_team_certifies_as_each_uav_alone(dynamics):
                 assert done.fallback[j] == (report.status == "fallback")
                 assert done.min_hard_h()[j] == report.min_hard_h
             np.testing.assert_array_equal(together.report(j).rows.b, report.rows.b)
+            min_h, min_hard_h = report.family_minima()
+            assert summaries[j] == {
+                "active": report.active, "correction_norm": report.correction_norm,
+                "status": report.status, "active_rows": report.active_rows,
+                "gave_up": report.gave_up, "slack": report.slack,
+                "hard_violation": report.hard_violation, "min_h": min_h,
+                "min_hard_h": min_hard_h,
+            }  # fmt: skip
             statuses.append(report.status)
         infos = shield.step({a: rng.uniform(-1, 1, 4) for a in env.agents})[4]
     assert statuses.count("nominal") > 20 and len(statuses) - statuses.count("nominal") > 20

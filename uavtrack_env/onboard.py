@@ -531,7 +531,7 @@ def certify_team(agents: Sequence[OnboardAgent], u: np.ndarray) -> Certificates:
         done = shield.certify_many(
             u, out.data[js, 3], out.data[js, 4:7], lambda j: out.rows(js_list[j]), ids, packed
         )
-        done.lows = out.lows[js]
+        done.lows, done.rows_at = out.lows[js], (out.ints[0], out.ints[1], out.start[js])
         return done
     own = np.array([agent._seen[0].data[agent._seen[1]] for agent in agents]).reshape(-1, 15)
     return shield.certify_many(u, own[:, 3], own[:, 4:7], [a.rows() for a in agents], ids)

@@ -248,17 +248,21 @@ class CBFRows(NamedTuple):
 
     def name(self, r: int, neighbour_ids=None) -> str:
         """Name of row r, e.g. 'uav:2', 'obstacle:5', 'occlusion:5', 'connect:1', 'target'."""
-        k = int(self.kind[r])
-        if k in (TARGET, FLOOR):
-            return KIND_NAMES[k]
-        i = int(self.index[r])
-        if neighbour_ids is not None and k in (UAV, CONNECT):
-            i = neighbour_ids[i]
-        return f"{KIND_NAMES[k]}:{i}"
+        return row_name(int(self.kind[r]), int(self.index[r]), neighbour_ids)
 
     def names(self, neighbour_ids=None) -> list[str]:
         """Names of all rows."""
         return [self.name(r, neighbour_ids) for r in range(len(self.b))]
+
+
+def row_name(kind: int, index: int, neighbour_ids=None) -> str:
+    """Name of a row of family ``kind`` for neighbour/obstacle ``index`` (`CBFRows.name`); the
+    UAV and connectivity rows name the team-mate's id in ``neighbour_ids``, if given."""
+    if kind in (TARGET, FLOOR):
+        return KIND_NAMES[kind]
+    if neighbour_ids is not None and kind in (UAV, CONNECT):
+        index = neighbour_ids[index]
+    return f"{KIND_NAMES[kind]}:{index}"
 
 
 # --------------------------------------------------------------------------- barrier functions

@@ -70,6 +70,7 @@ from uavtrack_env.safety.cbf import (
     CBFRows,
     RowBuilder,
     SafetyContext,
+    row_name,
 )
 from uavtrack_env.safety.config import CBFConfig
 from uavtrack_env.safety.qp_arrays import (
@@ -551,23 +552,7 @@ class SafetyFilter:
     # ----------------------------------------------------------------- report
     def _changed_report(self, out: list, u, rows, ids, t0) -> ShieldReport:
         """`_report` from `qp_layers.certify_changed`'s packed output (as a list)."""
-        name = rows.name
-        na, ns, nh = int(out[12]), int(out[13]), int(out[14])
-        j = OUT_HEAD
-        active_rows = [name(int(r), ids) for r in out[j : j + na]]
-        j += na
-        slack_rows = {
-            name(int(r), ids): viol
-            for r, viol in zip(out[j : j + ns], out[j + ns : j + 2 * ns], strict=True)
-        }
-        j += 2 * ns
-        gave_up = [name(int(r), ids) for r in out[j : j + nh]]
-        if out[9]:
-            active_rows.append("speed")
-        if out[10]:
-            active_rows.append("box")
-        if out[3] != u[3]:
-            active_rows.append("yaw_rate")
+        active_rows, slack_rows, gave_up = _changed_names(out, u[3], lambda r: rows.name(r, ids))
         return ShieldReport(
             status=LAYER_STATUS[int(out[4])],
             active=True,
@@ -623,6 +608,30 @@ _NOMINAL = {
 }
 
 
+def _changed_names(
+    out: list, u_yaw_rate: float, name: Callable[[int], str]
+) -> tuple[list[str], dict[str, float], list[str]]:
+    """(active rows and bounds, violated soft rows with their violations, violated hard rows)
+    of `qp_layers.certify_changed`'s packed output (as a list), rows named by ``name(r)``."""
+    na, ns, nh = int(out[12]), int(out[13]), int(out[14])
+    j = OUT_HEAD
+    active_rows = [name(int(r)) for r in out[j : j + na]]
+    j += na
+    slack_rows = {
+        name(int(r)): viol
+        for r, viol in zip(out[j : j + ns], out[j + ns : j + 2 * ns], strict=True)
+    }
+    j += 2 * ns
+    gave_up = [name(int(r)) for r in out[j : j + nh]]
+    if out[9]:
+        active_rows.append("speed")
+    if out[10]:
+        active_rows.append("box")
+    if out[3] != u_yaw_rate:
+        active_rows.append("yaw_rate")
+    return active_rows, slack_rows, gave_up
+
+
 class Certificates:
     """`SafetyFilter.certify_many`'s outcome for m UAVs: the certified commands and what each
     report says as arrays (m,), the `ShieldReport`s themselves made when first read
@@ -650,6 +659,9 @@ class Certificates:
         """(m, 7) `qp_arrays.family_lows` of each UAV's rows, if the caller set them."""
         self._made: list[ShieldReport | None] = [None] * len(changed)
         self._args = (shield, u, outs, rows, neighbour_ids, share)
+        self.rows_at: tuple | None = None
+        """(kind, index, begin): UAV j's rows' kinds and indices from ``begin[j]`` on, if the
+        caller set them (with ``lows``, `summary` then reads no report)."""
 
     @classmethod
     def of_reports(cls, action: np.ndarray, reports: list[ShieldReport]) -> Certificates:
@@ -660,7 +672,7 @@ class Certificates:
         self.correction_norm = np.array([r.correction_norm for r in reports], float)
         self.hard_violation = np.array([r.hard_violation for r in reports], float)
         self.fallback = np.array([r.status == "fallback" for r in reports], bool)
-        self.lows = None
+        self.lows = self.rows_at = None
         return self
 
     def __len__(self) -> int:
@@ -690,6 +702,41 @@ class Certificates:
     def reports(self) -> list[ShieldReport]:
         """Every UAV's `ShieldReport`."""
         return [self.report(j) for j in range(len(self))]
+
+    def summary(self, j: int) -> dict:
+        """What UAV j's report says (active, correction_norm, status, active_rows, gave_up,
+        slack, hard_violation, min_h, min_hard_h; `wrappers.CBFShield`'s telemetry), without
+        making the report where the arrays hold it."""
+        rep = self._made[j]
+        if rep is not None or self.lows is None or self.rows_at is None:
+            rep = self.report(j)
+            min_h, min_hard_h = rep.family_minima()
+            return {
+                "active": rep.active, "correction_norm": rep.correction_norm,
+                "status": rep.status, "active_rows": rep.active_rows, "gave_up": rep.gave_up,
+                "slack": rep.slack, "hard_violation": rep.hard_violation, "min_h": min_h,
+                "min_hard_h": min_hard_h,
+            }  # fmt: skip
+        *family, hard = self.lows[j].tolist()
+        min_h = {name: low for name, low in zip(KIND_NAMES, family, strict=True) if low == low}
+        if not self.changed[j]:
+            return {
+                "active": False, "correction_norm": 0.0, "status": "nominal", "active_rows": [],
+                "gave_up": [], "slack": 0.0, "hard_violation": 0.0, "min_h": min_h,
+                "min_hard_h": hard,
+            }  # fmt: skip
+        _, u, outs, _, ids, _ = self._args
+        kind, index, begin = self.rows_at
+        a, who = int(begin[j]), ids[j]
+        out = outs[j].tolist()
+        active_rows, _, gave_up = _changed_names(
+            out, u[j, 3], lambda r: row_name(int(kind[a + r]), int(index[a + r]), who)
+        )
+        return {
+            "active": True, "correction_norm": out[11], "status": LAYER_STATUS[int(out[4])],
+            "active_rows": active_rows, "gave_up": gave_up, "slack": out[7],
+            "hard_violation": out[8], "min_h": min_h, "min_hard_h": hard,
+        }  # fmt: skip
 
 
 def _nominal_report(rows: CBFRows, ids: tuple[int, ...] | None, time_us: float) -> ShieldReport:

@@ -33,7 +33,7 @@ from uavtrack_env.onboard import (
     onboard_team,
 )
 from uavtrack_env.presets import ExpertConfig, expert_config
-from uavtrack_env.safety import SafetyContext, ShieldReport
+from uavtrack_env.safety import Certificates, SafetyContext, ShieldReport
 
 _EPISODE_KEYS = ("steps", "interventions", "fallbacks", "correction")
 
@@ -71,7 +71,7 @@ class CBFShield(BaseParallelWrapper):
 
     The env's own signals stay visible: ``info["action_clipped"]`` and
     ``info["n_clipped_actions"]`` count the policy's actions outside [-1, 1], as the bare env
-    would. ``last_reports`` keeps the full `ShieldReport` of each agent.
+    would. ``last_reports`` holds the full `ShieldReport` of each agent (made when read).
     """
 
     def __init__(self, env: Any, config: ExpertConfig | str | None = None) -> None:
@@ -89,7 +89,7 @@ class CBFShield(BaseParallelWrapper):
         self._raw = raw
         self._scale = env_cfg.limits.scale
         self._ids = {a: i for i, a in enumerate(raw.possible_agents)}
-        self.last_reports: dict[str, ShieldReport] = {}
+        self._certified: tuple[list[str], Certificates | None] = ([], None)
         self._clips: dict[str, int] = {}
         self._episode: dict[str, dict[str, float]] = {}
 
@@ -101,7 +101,7 @@ class CBFShield(BaseParallelWrapper):
         agents = self._raw.possible_agents
         for agent in self.onboard.values():
             agent.reset(self._raw.layout, agents)
-        self.last_reports = {}
+        self._certified = ([], None)
         self._clips = dict.fromkeys(agents, 0)
         self._episode = {a: dict.fromkeys(_EPISODE_KEYS, 0.0) for a in agents}
         self._observe(infos)
@@ -120,59 +120,56 @@ class CBFShield(BaseParallelWrapper):
         names = list(actions)
         live = [self._ids[a] for a in names]
         u_safe = u.copy()
-        reports = {}
-        if names:
-            done = certify_team([self.onboard[a] for a in names], u[live])
+        done = certify_team([self.onboard[a] for a in names], u[live]) if names else None
+        changed = []
+        if done is not None:
             u_safe[live] = done.action
-            reports = dict(zip(names, done.reports(), strict=True))
+            changed = [i for i, c in zip(live, done.changed.tolist(), strict=True) if c]
         certified = np.clip(u_safe / self._scale, -1.0, 1.0)
         # An unchanged action is passed through as given (bit-identical behaviour).
-        changed = [self._ids[a] for a, rep in reports.items() if rep.active]
         if self.env is self._raw:  # checked above: the env's step without checking again
             u_env, clipped_env = u.copy(), clipped.copy()
             u_env[changed], clipped_env[changed] = certified[changed] * self._scale, False
             out = self._raw._step_checked(u_env, clipped_env)
         else:
             out = self.env.step(
-                {a: certified[self._ids[a]] if reports[a].active else act
+                {a: certified[self._ids[a]] if self._ids[a] in changed else act
                  for a, act in actions.items()}
             )  # fmt: skip
         obs, rewards, terms, truncs, infos = out
         self._observe(infos)
-        self.last_reports = reports
+        self._certified = (names, done)
+        order = {a: j for j, a in enumerate(names)}
         proposed, was_clipped = u / self._scale, clipped.tolist()
         for agent, info in infos.items():
             i = self._ids[agent]
             self._clips[agent] += was_clipped[i]
             info["action_clipped"] = was_clipped[i]
             info["n_clipped_actions"] = self._clips[agent]
-            info["shield"] = shield = self._telemetry(agent, reports[agent])
+            info["shield"] = shield = self._telemetry(agent, done.summary(order[agent]))
             shield["proposed"], shield["action"] = proposed[i], certified[i]
             if terms[agent] or truncs[agent]:
                 shield["episode"] = self._episode_summary(agent)
         return obs, rewards, terms, truncs, infos
 
-    def _telemetry(self, agent: str, rep: ShieldReport) -> dict[str, Any]:
-        """``info[agent]["shield"]`` for one step (class docstring) but the actions; updates the
-        episode sums."""
+    @property
+    def last_reports(self) -> dict[str, ShieldReport]:
+        """Each agent's full `ShieldReport` of the latest step (made when read)."""
+        names, done = self._certified
+        if done is None:
+            return {}
+        return {agent: done.report(j) for j, agent in enumerate(names)}
+
+    def _telemetry(self, agent: str, shield: dict[str, Any]) -> dict[str, Any]:
+        """``info[agent]["shield"]`` for one step (class docstring) but the actions, from
+        `Certificates.summary`; updates the episode sums."""
         ep = self._episode[agent]
         ep["steps"] += 1
-        ep["interventions"] += rep.active
-        ep["fallbacks"] += rep.status == "fallback"
-        ep["correction"] += rep.correction_norm
-        min_h, min_hard_h = rep.family_minima()
-        return {
-            "active": rep.active,
-            "correction_norm": rep.correction_norm,
-            "status": rep.status,
-            "active_rows": rep.active_rows,  # the report's own lists, made for this step
-            "gave_up": rep.gave_up,
-            "slack": rep.slack,
-            "hard_violation": rep.hard_violation,
-            "min_h": min_h,
-            "min_hard_h": min_hard_h,
-            "has_target_estimate": self.onboard[agent].tracker.has_estimate,
-        }
+        ep["interventions"] += shield["active"]
+        ep["fallbacks"] += shield["status"] == "fallback"
+        ep["correction"] += shield["correction_norm"]
+        shield["has_target_estimate"] = self.onboard[agent].tracker.has_estimate
+        return shield
 
     def _episode_summary(self, agent: str) -> dict[str, float]:
         ep = self._episode[agent]
