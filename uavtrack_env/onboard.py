@@ -30,6 +30,7 @@ from .onboard_pass import (
     TeamState,
     believe,
     car_box_arrays,
+    input_rows_of,
     observe_pass,
     take_and_believe,
     take_messages,
@@ -124,17 +125,15 @@ def input_row(info: dict) -> tuple:
 def input_rows(det: Detections, state: tuple[np.ndarray, ...]) -> np.ndarray:
     """`bank.INPUT_COLUMNS` rows (..., 15) of a detector frame ``det`` and the UAVs' own state
     (position, yaw, velocity, yaw rate), arrays with the same leading axes: what `input_row`
-    reads from each UAV's info (`env.sensor_infos`), without the dicts."""
+    reads from each UAV's info (`env.sensor_infos`), without the dicts (one compiled call)."""
     position, yaw, velocity, yaw_rate = state
-    ok = det.detected
-    out = np.zeros((*ok.shape, 15))
-    out[..., 0:3], out[..., 3], out[..., 4:7], out[..., 7] = position, yaw, velocity, yaw_rate
-    out[..., 8] = ok
-    for c, values in ((9, det.u), (10, det.v), (11, det.depth), (12, det.psi)):
-        out[..., c] = np.where(ok, values, 0.0)
-    out[..., 11] = np.where(ok, det.depth, 1.0)
-    out[..., 13:15] = det.truncated & ok[..., None]
-    return out
+    lead = det.detected.shape
+    flat = [
+        np.ascontiguousarray(a).reshape(-1, *a.shape[len(lead) :])
+        for a in (det.detected, det.u, det.v, det.depth, det.psi, det.truncated, position, yaw,
+                  velocity, yaw_rate)
+    ]  # fmt: skip
+    return input_rows_of(*flat).reshape(*lead, 15)
 
 
 def _step_alone(tracker: OnboardTracker, row: np.ndarray) -> None:
@@ -525,13 +524,17 @@ def certify_team(agents: Sequence[OnboardAgent], u: np.ndarray) -> Certificates:
     out = agents[0]._seen[0]
     shield = agents[0].filter
     if all(agent._seen[0] is out for agent in agents):  # one pass: its arrays as they are
-        js = np.array([agent._seen[1] for agent in agents])
-        packed = (out.A, out.floats[0], out.ints[0], out.start[js], out.start[js + 1])
-        js_list = js.tolist()
+        js = [agent._seen[1] for agent in agents]
+        if js == list(range(len(out.data))):  # all of the pass, in its order
+            data, lows, begin, end = out.data, out.lows, out.start[:-1], out.start[1:]
+        else:
+            at = np.array(js)
+            data, lows, begin, end = out.data[at], out.lows[at], out.start[at], out.start[at + 1]
+        packed = (out.A, out.floats[0], out.ints[0], begin, end)
         done = shield.certify_many(
-            u, out.data[js, 3], out.data[js, 4:7], lambda j: out.rows(js_list[j]), ids, packed
+            u, data[:, 3], data[:, 4:7], lambda j: out.rows(js[j]), ids, packed
         )
-        done.lows, done.rows_at = out.lows[js], (out.ints[0], out.ints[1], out.start[js])
+        done.lows, done.rows_at = lows, (out.ints[0], out.ints[1], begin)
         return done
     own = np.array([agent._seen[0].data[agent._seen[1]] for agent in agents]).reshape(-1, 15)
     return shield.certify_many(u, own[:, 3], own[:, 4:7], [a.rows() for a in agents], ids)
@@ -557,18 +560,24 @@ def onboard_team(
 
 
 def observe_team(agents: Sequence[OnboardAgent], infos: Sequence[dict]) -> None:
-    """`OnboardAgent.observe` for several UAVs (`observe_arrays` of their infos)."""
-    n = max(agent.team.n for agent in agents) if agents else 0
-    heard, sent = np.zeros((len(agents), n), bool), np.zeros((len(agents), n, 3))
-    for j, (agent, info) in enumerate(zip(agents, infos, strict=True)):
-        table = agent.neighbours
-        for name, pos in info["neighbours"].items():
-            k = table.index(name)
-            if k is not None:
-                i = table._ids[k]
-                heard[j, i], sent[j, i] = True, pos
-    data = np.array([input_row(info) for info in infos], float).reshape(-1, 15)
-    observe_arrays(agents, data, heard, sent, infos)
+    """`OnboardAgent.observe` for several UAVs (`observe_arrays` of their infos, per
+    `TeamState`)."""
+    groups: dict[int, list[int]] = {}
+    for j, agent in enumerate(agents):
+        groups.setdefault(id(agent.team), []).append(j)
+    for members in groups.values():
+        team = agents[members[0]].team
+        heard, sent = np.zeros((len(members), team.n), bool), np.zeros((team.worlds, team.n, 3))
+        for row, j in enumerate(members):
+            agent = agents[j]
+            table, w = agent.neighbours, agent.slot // team.n
+            for name, pos in infos[j]["neighbours"].items():
+                k = table.index(name)
+                if k is not None:
+                    i = table._ids[k]
+                    heard[row, i], sent[w, i] = True, pos
+        data = np.array([input_row(infos[j]) for j in members], float).reshape(-1, 15)
+        observe_arrays([agents[j] for j in members], data, heard, sent, [infos[j] for j in members])
 
 
 def observe_arrays(
@@ -579,10 +588,11 @@ def observe_arrays(
     infos: Sequence[dict] | None = None,
 ) -> None:
     """What several UAVs take from a step: agent j's `bank.INPUT_COLUMNS` row ``data[j]``
-    (`input_rows`) and the messages it heard, ``heard[j, i]`` from team member i with position
-    ``sent[j, i]``. Their UKFs step in one batched pass, then everything else (messages, cut
-    boxes, the car's box, the CBF rows) in one `observe_pass` per `TeamState`. ``infos``: the
-    infos the rows came from (``agent.info``), if any."""
+    (`input_rows`) and the messages it heard, ``heard[j, i]`` from team member i, whose
+    message carries ``sent[w, i]`` (the positions of world w's team, w = slot // team size).
+    Their UKFs step in one batched pass, then everything else (messages, cut boxes, the car's
+    box, the CBF rows) in one `observe_pass` per `TeamState`. ``infos``: the infos the rows came
+    from (``agent.info``), if any."""
     update_trackers([a.tracker for a in agents], data)
     groups: dict[int, list[int]] = {}
     for j, agent in enumerate(agents):
@@ -590,7 +600,7 @@ def observe_arrays(
     for members in groups.values():
         pick = members if len(members) < len(agents) else slice(None)
         _observe_pass(
-            [agents[j] for j in members], data[pick], heard[pick], sent[pick],
+            [agents[j] for j in members], data[pick], heard[pick], sent,
             None if infos is None else [infos[j] for j in members],
         )  # fmt: skip
 

@@ -142,6 +142,27 @@ def take_and_believe(
     return believe(known, p, v, v_err, age, dt, speed, believe_accel)
 
 
+@numba.njit(cache=True)
+def input_rows_of(
+    detected, u, v, depth, psi, truncated, position, yaw, velocity, yaw_rate
+):  # pragma: no cover (compiled)
+    """`onboard.input_rows` of flat arrays (N, ...): (N, 15) `bank.INPUT_COLUMNS` rows."""
+    out = np.zeros((detected.shape[0], 15))
+    for j in range(detected.shape[0]):
+        row = out[j]
+        for a in range(3):
+            row[a] = position[j, a]
+            row[4 + a] = velocity[j, a]
+        row[3], row[7] = yaw[j], yaw_rate[j]
+        if detected[j]:
+            row[8], row[9], row[10], row[11], row[12] = 1.0, u[j], v[j], depth[j], psi[j]
+            row[13] = 1.0 if truncated[j, 0] else 0.0
+            row[14] = 1.0 if truncated[j, 1] else 0.0
+        else:
+            row[11] = 1.0
+    return out
+
+
 def max_rows(n_mates: int, n_obstacles: int) -> int:
     """The most CBF rows one UAV can have: uav and connect per team-mate, obstacle and
     occlusion per box, the car and the floor."""
@@ -159,8 +180,8 @@ def observe_pass(
     in place, and their rows.
 
     Inputs per UAV j: its `bank.INPUT_COLUMNS` row ``data[j]`` (own state, detector flags); the
-    messages it heard, ``heard[j, i]`` from team member i with position ``sent[j, i]``; its
-    estimate: row ``est_slots[j]`` of a `estimation.bank.TrackerBank`'s state
+    messages it heard, ``heard[j, i]`` from team member i of its world w, with position
+    ``sent[w, i]``; its estimate: row ``est_slots[j]`` of a `estimation.bank.TrackerBank`'s state
     (x, P, ready, counts: steps since detection first). State per slot: the neighbour tables
     ``nb_*`` (`NeighbourTable`), the cut-box spells ``uncut``/``cut_steps``, the car box's
     ``anchor`` (position, variances); per world: obstacles ``obs_c/obs_h[:obs_n]``.
@@ -204,7 +225,7 @@ def observe_pass(
         for i in range(team_n):
             if i != me and heard[j, i]:
                 ks[count] = i - (i > me)  # the index in its table, which skips itself
-                pos[count] = sent[j, i]
+                pos[count] = sent[w, i]
                 count += 1
         ints, motion, radii = take_and_believe(
             ks, pos, nb_p[s], nb_v[s], nb_err[s], nb_age[s], nb_known[s], dt, accel, speed,

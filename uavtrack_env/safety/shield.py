@@ -651,10 +651,6 @@ class Certificates:
         """(m, 4) the certified commands."""
         self.changed = changed
         """(m,) the command was changed (``ShieldReport.active``)."""
-        self.correction_norm = np.where(changed, outs[:, 11], 0.0)
-        self.hard_violation = np.where(changed, outs[:, 8], 0.0)
-        self.fallback = changed & (outs[:, 4] == LAYER_STATUS.index("fallback"))
-        """(m,) status 'fallback' (braking included)."""
         self.lows: np.ndarray | None = None
         """(m, 7) `qp_arrays.family_lows` of each UAV's rows, if the caller set them."""
         self._made: list[ShieldReport | None] = [None] * len(changed)
@@ -669,11 +665,30 @@ class Certificates:
         self = object.__new__(cls)
         self.action, self._made, self._args = action, list(reports), None
         self.changed = np.array([r.active for r in reports], bool)
-        self.correction_norm = np.array([r.correction_norm for r in reports], float)
-        self.hard_violation = np.array([r.hard_violation for r in reports], float)
-        self.fallback = np.array([r.status == "fallback" for r in reports], bool)
         self.lows = self.rows_at = None
         return self
+
+    @property
+    def correction_norm(self) -> np.ndarray:
+        """(m,) ``ShieldReport.correction_norm`` of each UAV."""
+        return self._column(11, "correction_norm")
+
+    @property
+    def hard_violation(self) -> np.ndarray:
+        """(m,) ``ShieldReport.hard_violation`` of each UAV."""
+        return self._column(8, "hard_violation")
+
+    @property
+    def fallback(self) -> np.ndarray:
+        """(m,) the status is 'fallback' (braking included)."""
+        if self._args is None:
+            return np.array([r.status == "fallback" for r in self._made], bool)
+        return self.changed & (self._args[2][:, 4] == LAYER_STATUS.index("fallback"))
+
+    def _column(self, c: int, name: str) -> np.ndarray:
+        if self._args is None:
+            return np.array([getattr(r, name) for r in self._made], float)
+        return np.where(self.changed, self._args[2][:, c], 0.0)
 
     def __len__(self) -> int:
         return len(self._made)

@@ -204,5 +204,5 @@ class CBFShield(BaseParallelWrapper):
         rows = [self._ids[a] for a in infos]
         state = (raw.position, raw.yaw, raw.velocity, raw.yaw_rate)
         data = input_rows(raw.last_detection, state)[rows]
-        sent = np.repeat(raw.position[None], len(rows), axis=0)
-        observe_arrays(agents, data, raw.last_received[rows], sent, list(infos.values()))
+        heard = raw.last_received[rows]
+        observe_arrays(agents, data, heard, raw.position[None], list(infos.values()))

@@ -134,7 +134,7 @@ class VectorCBFShield:
             m, position = venv._sensed, venv._state[0]
             data = input_rows(m.detections, venv._state)[ks, ids]
             agents = [self.onboard[k][i] for k, i in zip(ks.tolist(), ids.tolist(), strict=True)]
-            observe_arrays(agents, data, m.received[ks, ids], position[ks])
+            observe_arrays(agents, data, m.received[ks, ids], position)
         agents, infos = [], []
         for k in worlds:
             if k in batched:
