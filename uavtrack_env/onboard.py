@@ -126,13 +126,11 @@ def input_rows(det: Detections, state: tuple[np.ndarray, ...]) -> np.ndarray:
     """`bank.INPUT_COLUMNS` rows (..., 15) of a detector frame ``det`` and the UAVs' own state
     (position, yaw, velocity, yaw rate), arrays with the same leading axes: what `input_row`
     reads from each UAV's info (`env.sensor_infos`), without the dicts (one compiled call)."""
-    position, yaw, velocity, yaw_rate = state
+    arrays = (det.detected, det.u, det.v, det.depth, det.psi, det.truncated, *state)
     lead = det.detected.shape
-    flat = [
-        np.ascontiguousarray(a).reshape(-1, *a.shape[len(lead) :])
-        for a in (det.detected, det.u, det.v, det.depth, det.psi, det.truncated, position, yaw,
-                  velocity, yaw_rate)
-    ]  # fmt: skip
+    if len(lead) == 1:  # one team: the arrays as they are
+        return input_rows_of(*arrays)
+    flat = [np.ascontiguousarray(a).reshape(-1, *a.shape[len(lead) :]) for a in arrays]
     return input_rows_of(*flat).reshape(*lead, 15)
 
 
