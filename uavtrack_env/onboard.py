@@ -380,6 +380,7 @@ class OnboardAgent:
         self.obstacle_centers = np.zeros((0, 3))
         self.obstacle_half_extents = np.zeros((0, 3))
         self.info: dict | None = None
+        """The latest info observed (None where the step came as arrays: `observe_arrays`)."""
         self._seen: tuple | None = None
         """The last `observe_pass`'s outputs and this agent's row in them."""
         self._belief: NeighbourBelief | None = None
