@@ -482,13 +482,6 @@ class OnboardAgent:
             if self._seen is None:
                 self.context()  # raises: no observation yet
             out, j = self._seen
-            builder = self.filter.row_builder
-            if builder.lag_tau > 0.0:  # second-order b, into the pass's arrays
-                a, b = out.start[j], out.start[j + 1]
-                stacked = builder.stack(
-                    out.A[a:b], out.floats[:, a:b], out.ints[:, a:b], out.sizes[j], self.context()
-                )
-                out.floats[0, a:b] = stacked.b
             self._rows = out.rows(j)
         return self._rows
 
@@ -516,9 +509,6 @@ def certify_team(agents: Sequence[OnboardAgent], u: np.ndarray) -> Certificates:
     """`OnboardAgent.certify_trusted` of ``u[j]`` (m, 4) for each of m agents with one
     configuration (`SafetyFilter.certify_many`: one compiled call); the reports are made when
     read (`Certificates.report`)."""
-    if agents[0].filter.row_builder.lag_tau > 0.0:
-        for agent in agents:
-            agent.rows()  # their second-order b
     ids = [agent.neighbour_ids() for agent in agents]
     out = agents[0]._seen[0]
     shield = agents[0].filter

@@ -22,6 +22,7 @@ import numpy as np
 from .safety.barrier_rows import N_FAMILIES, all_rows
 from .safety.cbf import CONNECT, CBFRows
 from .safety.qp_arrays import family_lows
+from .safety.second_order import second_order_rows
 from .target import CAR_HALF_EXTENTS
 
 CAR_DIAG = math.hypot(*CAR_HALF_EXTENTS[:2].tolist())
@@ -173,7 +174,7 @@ def max_rows(n_mates: int, n_obstacles: int) -> int:
 def observe_pass(
     slots, team_n, data, heard, sent, est_slots, est_x, est_P, est_ready, est_counts,
     nb_p, nb_v, nb_err, nb_age, nb_known, uncut, cut_steps, anchor, has_anchor, obs_c, obs_h,
-    obs_n, table_p, box_p, row_p, flags, gammas, margins,
+    obs_n, table_p, box_p, row_p, flags, gammas, margins, second_p,
     out_A, out_f, out_i, out_start, out_sizes, out_belief_i, out_belief_f, out_box, out_lows,
 ):  # fmt: skip  # pragma: no cover (compiled)
     """One step of what the UAVs ``slots`` (slot = world team_n + index in its team) know,
@@ -190,7 +191,8 @@ def observe_pass(
     accel (-1: none)]; ``box_p``: `car_box_arrays`'s params then [recovery steps, pad cut
     boxes]; ``row_p`` = [d_s, r_s, r_c, alpha_v, clearance, z_min, theta*, point mode];
     ``flags`` = [box obstacles, car as obstacle, occlusion rows, moving-target occlusion,
-    occlusion size margin] (`safety.cbf.RowBuilder.pass_params`).
+    occlusion size margin] (`safety.cbf.RowBuilder.pass_params`); ``second_p``:
+    `second_order.second_order_rows`' params (lag_tau > 0: the rows are second order).
 
     Outputs: the rows of UAV j at ``out_start[j]:out_start[j + 1]`` of ``out_A`` (., 3),
     ``out_f`` (5, .) = [b, h, gamma, drift, margin] and ``out_i`` (2, .) = [kind, index], its
@@ -268,6 +270,12 @@ def observe_pass(
             z_min, car and occlusion and m > 0, theta_star, mode, moving, size_margin, gammas,
             margins,
         )  # fmt: skip
+        if second_p[0] > 0.0:
+            floats[0] = second_order_rows(
+                A, floats[1], floats[0], floats[4], ints2[0], ints2[1], sizes, row[4:7],
+                motion[1], vq, 0.0, growth, car and box[12] > 0.5, True, radii[0], True,
+                radii[1], second_p,
+            )  # fmt: skip
         n = A.shape[0]
         out_start[j] = r
         out_A[r : r + n] = A
@@ -295,8 +303,7 @@ class PassOutput(NamedTuple):
     lows: np.ndarray
 
     def rows(self, j: int) -> CBFRows:
-        """UAV j's rows (views of the arrays; under the lag model their b once
-        `onboard.OnboardAgent.rows` has made the rows second order)."""
+        """UAV j's rows (views of the arrays)."""
         a, b = self.start[j], self.start[j + 1]
         f, i = self.floats[:, a:b], self.ints[:, a:b]
         return CBFRows(self.A[a:b], f[0], f[1], f[2], f[3], f[4], i[0], i[1])

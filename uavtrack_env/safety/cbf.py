@@ -37,7 +37,7 @@ import numpy as np
 from uavtrack_env.safety.barrier_rows import all_rows, box_sdists
 from uavtrack_env.safety.config import CBFConfig
 from uavtrack_env.safety.occlusion import POINT_MODES
-from uavtrack_env.safety.second_order import second_order_b
+from uavtrack_env.safety.second_order import second_order_rows
 
 KIND_NAMES = ("uav", "obstacle", "target", "floor", "connect", "occlusion")
 """Row family names, indexed by `CBFRows.kind`."""
@@ -356,6 +356,7 @@ class RowBuilder:
         self._margins = np.array((0.0, 0.0, 0.0, 0.0, self.margin, 0.0))
         self._point_mode = POINT_MODES.index(cbf.occlusion_point)
         self._theta_star = cbf.theta_star
+        self._second_params = self.second_order_params()
 
     def __call__(self, ctx: SafetyContext) -> CBFRows:
         """All member rows of the QP (47) for this context."""
@@ -391,27 +392,16 @@ class RowBuilder:
             self._gammas,
             self._margins,
         )
-        return self.stack(A, floats, ints, sizes, ctx)
-
-    def stack(
-        self,
-        A: np.ndarray,
-        floats: np.ndarray,
-        ints: np.ndarray,
-        sizes: np.ndarray,
-        ctx: SafetyContext | None,
-    ) -> CBFRows:
-        """The `CBFRows` of `all_rows`'s output (A, [b, h, gamma, drift, margin], [kind, index],
-        sizes) for ``ctx``, which only second-order rows (``lag_tau`` > 0) read."""
         b, h, gamma, drift, margin = floats
         kind, index = ints
         if self.lag_tau > 0.0:
             b = self._second_order(ctx, A, h, b, margin, kind, index, sizes)
         return CBFRows(A, b, h, gamma, drift, margin, kind, index)
 
-    def pass_params(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """`onboard_pass.observe_pass`'s ``row_p``, ``flags``, ``gammas`` and ``margins``: the
-        arguments `__call__` gives `all_rows` that do not depend on the context."""
+    def pass_params(self) -> tuple[np.ndarray, ...]:
+        """`onboard_pass.observe_pass`'s ``row_p``, ``flags``, ``gammas``, ``margins`` and
+        ``second_p``: the arguments `__call__` gives `all_rows` and the second-order rows that
+        do not depend on the context."""
         cbf = self.cbf
         row_p = np.array(
             (cbf.d_s, cbf.r_s, cbf.r_c, cbf.alpha_v, cbf.obstacle_clearance, cbf.z_min,
@@ -421,7 +411,17 @@ class RowBuilder:
             (self.obstacle_model == "box", self.target_as_obstacle, self.occlusion,
              cbf.occlusion_model == "moving-target", cbf.occlusion_size_margin)
         )  # fmt: skip
-        return row_p, flags, self._gammas, self._margins
+        return row_p, flags, self._gammas, self._margins, self._second_params
+
+    def second_order_params(self) -> np.ndarray:
+        """`second_order.second_order_rows`' ``params`` of this builder."""
+        cbf = self.cbf
+        standoff = cbf.obstacle_clearance if self.obstacle_model == "box" else cbf.r_s
+        return np.array(
+            (self.lag_tau, cbf.gamma_s, cbf.gamma_c, cbf.gamma_obstacle, cbf.gamma_z,
+             cbf.obstacle_clearance, cbf.obstacle_clearance**2, standoff, standoff**2,
+             self.obstacle_model == "box", cbf.r_s, cbf.r_c, cbf.alpha_v, self.brake_decel)
+        )  # fmt: skip
 
     def _second_order(
         self,
@@ -448,59 +448,18 @@ class RowBuilder:
         condition; once it is < 0 the pair must brake and s = 1: each UAV brakes for the pair on
         its own, so the condition holds even if the team-mate cannot do its half (a UAV pinned
         by other hard rows gives its pair row up in a fallback) as long as the team-mate does
-        not accelerate towards it.
+        not accelerate towards it. Compiled: `second_order.second_order_rows`.
         """
-        cbf = self.cbf
         v = ctx.velocity
         if v is None:
             raise ValueError("second-order rows (lag_tau > 0) need SafetyContext.velocity")
         rho, sigma = ctx.neighbour_radius, ctx.neighbour_velocity_radius
-        standoff = cbf.obstacle_clearance if self.obstacle_model == "box" else cbf.r_s
-        grad = -A
-        dv_t, curv_t = _ZEROS3, 0.0
-        frustum = bool(sizes[2]) and bool(ctx.target_frustum)
-        if sizes[2]:  # the car's row: its velocity relative to the car's faces, its curvature
-            t = sizes[0] + sizes[1]
-            dv_t = car_relative_velocity(
-                v, ctx.target_velocity, grad[t], ctx.target_heading, ctx.target_growth
-            )
-            if not frustum:  # the frustum's Hessian is >= 0 (h convex): 0 is the safe bound
-                curv_t = self._target_curvature(ctx.target_heading, grad[t], dv_t, h[t])
-        return second_order_b(
+        return second_order_rows(
             A, h, b, margin, kind, index, sizes, v, _neighbour_velocities(ctx),
-            grad @ v, dv_t, curv_t, frustum, rho is not None,
-            _ZEROS3 if rho is None else rho, sigma is not None, _ZEROS3 if sigma is None else sigma,
-            self.lag_tau, cbf.gamma_s, cbf.gamma_c, cbf.gamma_obstacle, cbf.gamma_z,
-            cbf.obstacle_clearance, cbf.obstacle_clearance**2, standoff, standoff**2,
-            self.obstacle_model == "box", cbf.r_s, cbf.r_c, cbf.alpha_v, self.brake_decel,
+            ctx.target_velocity, float(ctx.target_heading), ctx.target_growth,
+            bool(ctx.target_frustum), rho is not None, _ZEROS3 if rho is None else rho,
+            sigma is not None, _ZEROS3 if sigma is None else sigma, self._second_params,
         )  # fmt: skip
-
-    def _target_curvature(
-        self, heading: float, grad: np.ndarray, dv: np.ndarray, h: float
-    ) -> float:
-        """dv' H dv of the target's box row, in the car's frame (its box is axis-aligned there);
-        dv the velocity relative to the car's faces."""
-        c, s_ = math.cos(heading), math.sin(heading)
-        rot = np.array(((c, s_, 0.0), (-s_, c, 0.0), (0.0, 0.0, 1.0)))  # world -> car frame
-        g_l, dv_l = rot @ grad, rot @ dv
-        active = np.abs(g_l) > 1e-12 * max(float(np.abs(g_l).max()), 1e-300)
-        sign = 2.0 if h + self.cbf.obstacle_clearance**2 >= 0.0 else -2.0
-        return sign * float(active @ (dv_l * dv_l))
-
-
-def car_relative_velocity(
-    v: np.ndarray, vq: np.ndarray, grad: np.ndarray, heading: float, growth: np.ndarray
-) -> np.ndarray:
-    """The UAV's velocity relative to the car box's nearest face(s) (``grad``: grad h of its
-    row): v - V_q, less each face's outward speed ``growth`` (box frame) along the gradient's
-    signs, so that ``h-dot = grad h . dv`` and ``h-ddot = dv' H dv`` for a growing box."""
-    dv = v - vq
-    if not growth.any():
-        return dv
-    c, s = math.cos(heading), math.sin(heading)
-    g_l = np.array((c * grad[0] + s * grad[1], -s * grad[0] + c * grad[1], grad[2]))
-    wx, wy, wz = np.sign(g_l) * growth
-    return dv - np.array((c * wx - s * wy, s * wx + c * wy, wz))
 
 
 def _neighbour_velocities(ctx: SafetyContext) -> np.ndarray:

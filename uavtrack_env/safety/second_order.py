@@ -243,3 +243,78 @@ def _braking(
             m_v = _dot3(A[r, 0], A[r, 1], A[r, 2], v[0], v[1], v[2]) / norm[r]
             out[r] = norm[r] * (m_v + ta * (gamma1[r] * s_b / w - 1.0))
     return out
+
+
+@numba.njit(cache=True)
+def _sign(x):  # pragma: no cover (compiled)
+    return 1.0 if x > 0.0 else (-1.0 if x < 0.0 else 0.0)
+
+
+@numba.njit(cache=True)
+def car_relative_velocity(v, vq, grad, heading, growth):  # pragma: no cover (compiled)
+    """The UAV's velocity relative to the car box's nearest face(s) (``grad``: grad h of its
+    row): v - V_q, less each face's outward speed ``growth`` (box frame) along the gradient's
+    signs, so that ``h-dot = grad h . dv`` and ``h-ddot = dv' H dv`` for a growing box."""
+    dv = v - vq
+    if growth[0] == 0.0 and growth[1] == 0.0 and growth[2] == 0.0:
+        return dv
+    c, s = math.cos(heading), math.sin(heading)
+    wx = _sign(c * grad[0] + s * grad[1]) * growth[0]
+    wy = _sign(-s * grad[0] + c * grad[1]) * growth[1]
+    wz = _sign(grad[2]) * growth[2]
+    dv[0] -= c * wx - s * wy
+    dv[1] -= s * wx + c * wy
+    dv[2] -= wz
+    return dv
+
+
+@numba.njit(cache=True)
+def target_curvature(heading, grad, dv, h, clearance2):  # pragma: no cover (compiled)
+    """dv' H dv of the car's box row, in the car's frame (its box is axis-aligned there); dv
+    the velocity relative to the car's faces."""
+    c, s = math.cos(heading), math.sin(heading)
+    g = (c * grad[0] + s * grad[1], -s * grad[0] + c * grad[1], grad[2])
+    d = (c * dv[0] + s * dv[1], -s * dv[0] + c * dv[1], dv[2])
+    big = max(abs(g[0]), abs(g[1]), abs(g[2]), 1e-300)
+    out = 0.0
+    for a in range(3):
+        if abs(g[a]) > 1e-12 * big:
+            out += d[a] * d[a]
+    return (2.0 if h + clearance2 >= 0.0 else -2.0) * out
+
+
+SECOND_ORDER_PARAMS = (
+    "lag_tau", "gamma_s", "gamma_c", "gamma_obstacle", "gamma_z", "obstacle_clearance",
+    "clearance2", "standoff", "standoff2", "box_model", "r_s", "r_c", "alpha_v", "brake_decel",
+)  # fmt: skip
+"""`second_order_rows`' ``params``, in order (`cbf.RowBuilder.second_order_params`)."""
+
+
+@numba.njit(cache=True)
+def second_order_rows(
+    A, h, b, margin, kind, index, sizes, v, nb_v, vq, heading, growth, frustum, has_rho, rho,
+    has_sigma, sigma, params,
+):  # fmt: skip  # pragma: no cover (compiled)
+    """`second_order_b` from the context's values: the rows' gradients times ``v``, the car
+    row's relative velocity (`car_relative_velocity`) and curvature (`target_curvature`; 0 for
+    the convex ``frustum``), for a car box moving at ``vq`` with yaw ``heading`` and faces
+    growing at ``growth``; ``params``: `SECOND_ORDER_PARAMS`."""
+    n = h.shape[0]
+    grad_v = np.empty(n)
+    for r in range(n):
+        grad_v[r] = -(A[r, 0] * v[0] + A[r, 1] * v[1] + A[r, 2] * v[2])
+    dv_t = np.zeros(3)
+    curv_t = 0.0
+    frustum = sizes[2] > 0 and frustum
+    if sizes[2]:
+        t = sizes[0] + sizes[1]
+        grad_t = -A[t]
+        dv_t = car_relative_velocity(v, vq, grad_t, heading, growth)
+        if not frustum:  # the frustum's Hessian is >= 0 (h convex): 0 is the safe bound
+            curv_t = target_curvature(heading, grad_t, dv_t, h[t], params[6])
+    return second_order_b(
+        A, h, b, margin, kind, index, sizes, v, nb_v, grad_v, dv_t, curv_t, frustum, has_rho,
+        rho, has_sigma, sigma, params[0], params[1], params[2], params[3], params[4], params[5],
+        params[6], params[7], params[8], params[9] > 0.5, params[10], params[11], params[12],
+        params[13],
+    )  # fmt: skip
