@@ -95,6 +95,10 @@ def update_trackers(trackers: Sequence[OnboardTracker], data: np.ndarray) -> Non
     """Advance each UAV's filter with its `bank.INPUT_COLUMNS` row ``data[j]`` (measurement
     and own motion): the trackers of one `TrackerBank` in one compiled call, plain-filterpy
     trackers one by one (their new estimates: ``tracker.estimate``)."""
+    bank = trackers[0].bank if len(trackers) else None
+    if bank is not None and all(t.bank is bank for t in trackers):  # one bank: one call
+        bank.step([t.slot for t in trackers], data)
+        return
     groups: dict[int, tuple[TrackerBank, list[int], list[int]]] = {}
     for j, tracker in enumerate(trackers):
         bank = tracker.bank
@@ -509,22 +513,28 @@ def certify_team(agents: Sequence[OnboardAgent], u: np.ndarray) -> Certificates:
     """`OnboardAgent.certify_trusted` of ``u[j]`` (m, 4) for each of m agents with one
     configuration (`SafetyFilter.certify_many`: one compiled call); the reports are made when
     read (`Certificates.report`)."""
-    ids = [agent.neighbour_ids() for agent in agents]
     out = agents[0]._seen[0]
     shield = agents[0].filter
     if all(agent._seen[0] is out for agent in agents):  # one pass: its arrays as they are
         js = [agent._seen[1] for agent in agents]
         if js == list(range(len(out.data))):  # all of the pass, in its order
             data, lows, begin, end = out.data, out.lows, out.start[:-1], out.start[1:]
+            known = out.belief_ints[:, 0].tolist()
         else:
             at = np.array(js)
             data, lows, begin, end = out.data[at], out.lows[at], out.start[at], out.start[at + 1]
+            known = out.belief_ints[at, 0].tolist()
+        ids = [  # every team-mate believed: the table's own tuple
+            a.neighbours._all[1] if k == len(a.neighbours._ids) else a.belief.ids
+            for a, k in zip(agents, known, strict=True)
+        ]
         packed = (out.A, out.floats[0], out.ints[0], begin, end)
         done = shield.certify_many(
             u, data[:, 3], data[:, 4:7], lambda j: out.rows(js[j]), ids, packed
         )
         done.lows, done.rows_at = lows, (out.ints[0], out.ints[1], begin)
         return done
+    ids = [agent.neighbour_ids() for agent in agents]
     own = np.array([agent._seen[0].data[agent._seen[1]] for agent in agents]).reshape(-1, 15)
     return shield.certify_many(u, own[:, 3], own[:, 4:7], [a.rows() for a in agents], ids)
 

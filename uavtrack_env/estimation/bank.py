@@ -287,13 +287,9 @@ class TrackerBank:
             self._held, self._ht, self._hp, self._hv, self._hist, self.n_covariance_repairs,
             *self._consts, out_x, out_P,
         )  # fmt: skip
-        ready = self._ready[idx].tolist()
-        outputs = (out_x, out_P)
-        estimates = self.estimates
-        for j, slot in enumerate(slots):
-            if ready[j]:
-                estimates.set(slot, outputs, j)
-        return outputs
+        rows = np.flatnonzero(self._ready[idx])
+        self.estimates.set(idx[rows], (out_x, out_P), rows)
+        return out_x, out_P
 
 
 class Estimates(Sequence):
@@ -301,16 +297,23 @@ class Estimates(Sequence):
     detection), made from its step's output rows when first read."""
 
     def __init__(self, size: int) -> None:
-        self._made: list[Estimate | None] = [None] * size
-        self._rows: list[tuple | None] = [None] * size
+        self._made = np.full(size, None, object)
+        """Each slot's `Estimate`, once made."""
+        self._outputs = np.full(size, None, object)
+        """Each slot's latest step outputs (out_x, out_P), in a one-element list."""
+        self._row = np.zeros(size, np.int64)
+        """Each slot's row in them."""
 
-    def set(self, slot: int, outputs: tuple[np.ndarray, np.ndarray], j: int) -> None:
-        """Slot ``slot``'s estimate is row ``j`` of `TrackerBank.step`'s ``outputs``."""
-        self._made[slot], self._rows[slot] = None, (outputs, j)
+    def set(self, slots: np.ndarray, outputs: tuple[np.ndarray, np.ndarray], rows: np.ndarray):
+        """Slot ``slots[i]``'s estimate is row ``rows[i]`` of `TrackerBank.step`'s
+        ``outputs``."""
+        held = np.empty(1, object)  # one object for all the slots, not a sequence to spread
+        held[0] = outputs
+        self._made[slots], self._outputs[slots], self._row[slots] = None, held, rows
 
     def clear(self, slot: int) -> None:
         """Slot ``slot`` has no estimate."""
-        self._made[slot] = self._rows[slot] = None
+        self._made[slot] = self._outputs[slot] = None
 
     def __len__(self) -> int:
         return len(self._made)
@@ -319,8 +322,8 @@ class Estimates(Sequence):
         if isinstance(slot, slice):
             return [self[i] for i in range(*slot.indices(len(self)))]
         est = self._made[slot]
-        if est is None and self._rows[slot] is not None:
-            (out_x, out_P), j = self._rows[slot]
+        if est is None and self._outputs[slot] is not None:
+            (out_x, out_P), j = self._outputs[slot], self._row[slot]
             est = self._made[slot] = self.from_outputs(out_x[j], out_P[j])
         return est
 
