@@ -150,3 +150,28 @@ def test_input_rows_of_arrays_equal_those_of_infos():
         infos = env.step({a: rng.uniform(-1, 1, 4) for a in env.agents})[4]
     assert detected > 50 and cut > 0
     env.close()
+
+
+def test_a_lone_stack_takes_teams_of_any_size_a_shared_one_says_what_is_wrong():
+    """An `OnboardAgent` built alone keeps a team state of its own, made anew for a team of
+    another size; the stacks of `onboard_team` share one and refuse another team size with a
+    clear error, changing nothing."""
+    from uavtrack_env.onboard import OnboardAgent, onboard_team
+
+    small = uavtrack_v0.parallel_env(scenario="random", n_uavs=3)
+    large = uavtrack_v0.parallel_env(scenario="random", n_uavs=5)
+    small.reset(seed=0)
+    _, infos = large.reset(seed=1)
+    cfg = expert_config("tuned")
+    alone = OnboardAgent("uav_0", 0, small.config, cfg)
+    alone.reset(small.layout, small.possible_agents)
+    alone.reset(large.layout, large.possible_agents)
+    alone.observe(infos["uav_0"])
+    assert len(alone.belief.ids) <= 4 and alone.team.n == 5
+    shared = onboard_team(small.possible_agents, small.config, cfg)[0][0]
+    team = shared.team
+    with pytest.raises(ValueError, match="holds teams of 3 UAVs"):
+        shared.reset(large.layout, large.possible_agents)
+    assert shared.team is team and team.n == 3
+    small.close()
+    large.close()

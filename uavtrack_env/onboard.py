@@ -379,6 +379,9 @@ class OnboardAgent:
         )  # fmt: skip
         """`observe_pass`'s table_p, box_p, row_p, flags, gammas and margins."""
         self.team, self.slot = team, index if slot is None else slot
+        self._own_team = team is None
+        """No team was given: the agent keeps a `TeamState` of its own, made anew for a team of
+        another size."""
         if team is not None:
             self._bind()
         self.obstacle_centers = np.zeros((0, 3))
@@ -416,9 +419,10 @@ class OnboardAgent:
         """A new episode on ``layout`` (its known obstacle map); ``agents`` names the team in
         index order. Forgets the estimate and the neighbours' histories."""
         if self.team is None or self.team.n != len(agents):
-            if self.team is not None and self.team.worlds * self.team.n > 1:
+            if not self._own_team:
                 raise ValueError(
-                    f"{self.name}: its team state holds teams of {self.team.n}, got {agents}"
+                    f"{self.name}: its team's state (onboard_team) holds teams of {self.team.n} "
+                    f"UAVs, got the team {agents}; build the team's stacks for this team anew"
                 )
             self.team, self.slot = TeamState(len(agents)), agents.index(self.name)
             self._bind()
