@@ -244,9 +244,10 @@ class NeighbourTable:
         self._age[:] = 0
         self._known[:] = np.linalg.norm(self._pos - positions[me], axis=1) <= r_c
 
-    def index(self, name: str) -> int | None:
-        """The table's index of team-mate ``name`` (None: not a team-mate)."""
-        return self._index.get(name)
+    def member(self, name: str) -> int | None:
+        """Team-mate ``name``'s index in the team (None: not a team-mate of this table)."""
+        k = self._index.get(name)
+        return None if k is None else self._ids[k]
 
     def update(self, messages: dict[str, np.ndarray]) -> None:
         """Take this step's messages (team-mate -> position); the others age by one step."""
@@ -504,13 +505,13 @@ class OnboardAgent:
         own = out.data[j]
         return self.filter.certify_pose(u, float(own[3]), own[4:7], rows, self.neighbour_ids())
 
-    def neighbour_ids(self) -> tuple[int, ...]:
+    def neighbour_ids(self, known: int | None = None) -> tuple[int, ...]:
         """The team indices of the team-mates believed at the latest observation (they name
-        the rows: 'uav:<id>')."""
-        bi = self._seen[0].belief_ints[self._seen[1]] if self._seen is not None else None
-        if bi is not None and int(bi[0]) == len(self.neighbours._all[1]):
-            return self.neighbours._all[1]
-        return self.belief.ids
+        the rows: 'uav:<id>'); ``known``: how many, if the caller has read it from the pass."""
+        if known is None and self._seen is not None:
+            known = int(self._seen[0].belief_ints[self._seen[1], 0])
+        everyone = self.neighbours._all[1]
+        return everyone if known == len(everyone) else self.belief.ids
 
 
 def certify_team(agents: Sequence[OnboardAgent], u: np.ndarray) -> Certificates:
@@ -528,10 +529,7 @@ def certify_team(agents: Sequence[OnboardAgent], u: np.ndarray) -> Certificates:
             at = np.array(js)
             data, lows, begin, end = out.data[at], out.lows[at], out.start[at], out.start[at + 1]
             known = out.belief_ints[at, 0].tolist()
-        ids = [  # every team-mate believed: the table's own tuple
-            a.neighbours._all[1] if k == len(a.neighbours._ids) else a.belief.ids
-            for a, k in zip(agents, known, strict=True)
-        ]
+        ids = [a.neighbour_ids(k) for a, k in zip(agents, known, strict=True)]
         packed = (out.A, out.floats[0], out.ints[0], begin, end)
         done = shield.certify_many(
             u, data[:, 3], data[:, 4:7], lambda j: out.rows(js[j]), ids, packed
@@ -575,9 +573,8 @@ def observe_team(agents: Sequence[OnboardAgent], infos: Sequence[dict]) -> None:
             agent = agents[j]
             table, w = agent.neighbours, agent.slot // team.n
             for name, pos in infos[j]["neighbours"].items():
-                k = table.index(name)
-                if k is not None:
-                    i = table._ids[k]
+                i = table.member(name)
+                if i is not None:
                     heard[row, i], sent[w, i] = True, pos
         data = np.array([input_row(infos[j]) for j in members], float).reshape(-1, 15)
         observe_arrays([agents[j] for j in members], data, heard, sent, [infos[j] for j in members])

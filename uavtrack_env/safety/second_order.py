@@ -283,13 +283,6 @@ def target_curvature(heading, grad, dv, h, clearance2):  # pragma: no cover (com
     return (2.0 if h + clearance2 >= 0.0 else -2.0) * out
 
 
-SECOND_ORDER_PARAMS = (
-    "lag_tau", "gamma_s", "gamma_c", "gamma_obstacle", "gamma_z", "obstacle_clearance",
-    "clearance2", "standoff", "standoff2", "box_model", "r_s", "r_c", "alpha_v", "brake_decel",
-)  # fmt: skip
-"""`second_order_rows`' ``params``, in order (`cbf.RowBuilder.second_order_params`)."""
-
-
 @numba.njit(cache=True)
 def second_order_rows(
     A, h, b, margin, kind, index, sizes, v, nb_v, vq, heading, growth, frustum, has_rho, rho,
@@ -298,7 +291,9 @@ def second_order_rows(
     """`second_order_b` from the context's values: the rows' gradients times ``v``, the car
     row's relative velocity (`car_relative_velocity`) and curvature (`target_curvature`; 0 for
     the convex ``frustum``), for a car box moving at ``vq`` with yaw ``heading`` and faces
-    growing at ``growth``; ``params``: `SECOND_ORDER_PARAMS`."""
+    growing at ``growth``; ``params`` = [lag_tau, gamma_s, gamma_c, gamma_obstacle, gamma_z,
+    clearance, clearance^2, standoff, standoff^2, box obstacles, R_s, R_c, alpha_v,
+    brake_decel] (`cbf.RowBuilder.second_order_params`)."""
     n = h.shape[0]
     grad_v = np.empty(n)
     for r in range(n):
