@@ -135,9 +135,9 @@ class VectorCBFShield:
             data = input_rows(m.detections, venv._state)[ks, ids]
             agents = [self.onboard[k][i] for k, i in zip(ks.tolist(), ids.tolist(), strict=True)]
             observe_arrays(agents, data, m.received[ks, ids], position)
-        agents, infos = [], []
+        agents, infos, done = [], [], set(batched)
         for k in worlds:
-            if k in batched:
+            if k in done:
                 continue
             for name, info in venv.sensor_infos(k).items():
                 agents.append(self.onboard[k][self._index[name]])
