@@ -44,5 +44,5 @@ def test_a_shielded_step_leaves_the_onboard_kernels_cached():
     env.step({a: np.ones(4) for a in env.agents})
     env.onboard["uav_0"].certify(np.full(4, 20.0))
     env.close()
-    assert len(onboard_kernels()) == 6
+    assert len(onboard_kernels()) == 7
     assert kernels_cached()

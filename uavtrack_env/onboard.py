@@ -32,6 +32,7 @@ from .onboard_pass import (
     car_box_arrays,
     input_rows_of,
     observe_pass,
+    observe_step,
     take_and_believe,
     take_messages,
 )
@@ -591,8 +592,22 @@ def observe_arrays(
     (`input_rows`) and the messages it heard, ``heard[j, i]`` from team member i, whose
     message carries ``sent[w, i]`` (the positions of world w's team, w = slot // team size).
     Their UKFs step in one batched pass, then everything else (messages, cut boxes, the car's
-    box, the CBF rows) in one `observe_pass` per `TeamState`. ``infos``: the infos the rows came
-    from (``agent.info``), if any."""
+    box, the CBF rows) in one `observe_pass` per `TeamState`; both in one compiled call
+    (`observe_step`) when the agents are one team whose trackers share a bank slot for slot.
+    ``infos``: the infos the rows came from (``agent.info``), if any."""
+    team, bank = agents[0].team, agents[0].tracker.bank
+    if bank is not None and all(
+        a.team is team and a.tracker.bank is bank and a.tracker.slot == a.slot for a in agents
+    ):
+        slots, outputs = bank.prepare([a.slot for a in agents], data)
+        out = PassOutput.allocate(data, team.n - 1, team.obs_c.shape[1])
+        observe_step(
+            slots, team.n, data, heard, sent, bank.kernel_args, *outputs, team.arrays(),
+            agents[0]._pass_params, out[1:],
+        )  # fmt: skip
+        bank.estimates.set(slots.tolist(), outputs, bank._ready)
+        _take_pass(agents, out, infos)
+        return
     update_trackers([a.tracker for a in agents], data)
     groups: dict[int, list[int]] = {}
     for j, agent in enumerate(agents):
@@ -617,10 +632,14 @@ def _observe_pass(
     slots = np.array([a.slot for a in agents], np.int64)
     out = PassOutput.allocate(data, team.n - 1, team.obs_c.shape[1])
     observe_pass(
-        slots, team.n, data, heard, sent, *_estimate_arrays(agents), team.nb_p, team.nb_v,
-        team.nb_err, team.nb_age, team.nb_known, team.uncut, team.cut_steps, team.anchor,
-        team.has_anchor, team.obs_c, team.obs_h, team.obs_n, *agents[0]._pass_params, *out[1:],
+        slots, team.n, data, heard, sent, *_estimate_arrays(agents), *team.arrays(),
+        *agents[0]._pass_params, *out[1:],
     )  # fmt: skip
+    _take_pass(agents, out, infos)
+
+
+def _take_pass(agents: Sequence[OnboardAgent], out: PassOutput, infos: Sequence[dict] | None):
+    """Agent j's latest observation is row j of the pass ``out`` (and ``infos[j]``)."""
     for j, agent in enumerate(agents):
         agent.info, agent._seen = None if infos is None else infos[j], (out, j)
         agent._belief, agent._context, agent._rows = None, None, None

@@ -20,6 +20,7 @@ from typing import NamedTuple
 import numba
 import numpy as np
 
+from .estimation.bank import _bank_step
 from .safety.barrier_rows import N_FAMILIES, all_rows
 from .safety.cbf import CONNECT, CBFRows
 from .safety.qp_arrays import family_lows
@@ -288,6 +289,21 @@ def observe_pass(
     out_start[slots.shape[0]] = r
 
 
+@numba.njit(cache=True)
+def observe_step(
+    slots, team_n, data, heard, sent, bank_args, out_x, out_P, team_arrays, params, outs
+):  # fmt: skip  # pragma: no cover (compiled)
+    """The UAVs' UKF step (`estimation.bank._bank_step` with the bank's ``kernel_args``; bank
+    slot = team slot) and then their `observe_pass` (``team_arrays``: `TeamState.arrays`,
+    ``params``: its table_p to second_p, ``outs``: its outputs), in one compiled call."""
+    _bank_step(slots, data, *bank_args, out_x, out_P)
+    x, P, ready, counts = bank_args[0], bank_args[1], bank_args[2], bank_args[4]
+    observe_pass(
+        slots, team_n, data, heard, sent, slots, x, P, ready, counts, *team_arrays, *params,
+        *outs,
+    )  # fmt: skip
+
+
 class PassOutput(NamedTuple):
     """`observe_pass`'s input rows and outputs for m UAVs (its docstring)."""
 
@@ -341,6 +357,13 @@ class TeamState:
         self.obs_c = np.zeros((worlds, 0, 3))
         self.obs_h = np.zeros((worlds, 0, 3))
         self.obs_n = np.zeros(worlds, np.int64)
+
+    def arrays(self) -> tuple[np.ndarray, ...]:
+        """`observe_pass`'s state arguments, nb_p to obs_n."""
+        return (
+            self.nb_p, self.nb_v, self.nb_err, self.nb_age, self.nb_known, self.uncut,
+            self.cut_steps, self.anchor, self.has_anchor, self.obs_c, self.obs_h, self.obs_n,
+        )  # fmt: skip
 
     def set_map(self, world: int, centers: np.ndarray, half: np.ndarray) -> None:
         """World ``world``'s known obstacles (m, 3) centres and half extents."""

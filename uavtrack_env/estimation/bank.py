@@ -257,6 +257,10 @@ class TrackerBank:
         self._hv = np.zeros((size, cap, 3))
         self._hist = np.zeros((size, 2), np.int64)  # next index, samples
         self.n_covariance_repairs = np.zeros(size, np.int64)
+        self._state = (
+            self._x, self._P, self._ready, self._clock, self._counts, self._accel, self._held,
+            self._ht, self._hp, self._hv, self._hist, self.n_covariance_repairs,
+        )  # fmt: skip
         self.estimates = Estimates(size)
         """Slot i's latest `Estimate` (None until its first detection)."""
 
@@ -274,22 +278,28 @@ class TrackerBank:
         the env's own data (finite, depth > 0 where detected), taken without further checks.
         Returns the step's outputs: row j of ``(out_x, out_P)`` is slot ``slots[j]``'s estimate
         (`Estimates.from_outputs`) where it has one."""
+        idx, outputs = self.prepare(slots, data)
+        _bank_step(idx, data, *self.kernel_args, *outputs)
+        self.estimates.set(idx.tolist(), outputs, self._ready)
+        return outputs
+
+    def prepare(self, slots: Sequence[int], data: np.ndarray) -> tuple[np.ndarray, tuple]:
+        """`step`'s checks of ``data`` and its output arrays: (slot indices, (out_x, out_P)).
+        A caller that runs `_bank_step` inside a kernel of its own passes it ``kernel_args``
+        and then gives `estimates` the outputs, as `step` does."""
         m = len(slots)
         if data.shape != (m, len(INPUT_COLUMNS)) or data.dtype != np.float64:
             raise ValueError(
                 f"data must be a float64 array of shape ({m}, {len(INPUT_COLUMNS)}) (one row of "
                 f"INPUT_COLUMNS per slot), got {data.dtype} {data.shape}"
             )
-        out_x, out_P = np.empty((m, _OUT)), np.empty((m, DIM_X, DIM_X))
-        idx = np.asarray(slots, np.int64)
-        _bank_step(
-            idx, data, self._x, self._P, self._ready, self._clock, self._counts, self._accel,
-            self._held, self._ht, self._hp, self._hv, self._hist, self.n_covariance_repairs,
-            *self._consts, out_x, out_P,
-        )  # fmt: skip
-        rows = np.flatnonzero(self._ready[idx])
-        self.estimates.set(idx[rows], (out_x, out_P), rows)
-        return out_x, out_P
+        return np.asarray(slots, np.int64), (np.empty((m, _OUT)), np.empty((m, DIM_X, DIM_X)))
+
+    @property
+    def kernel_args(self) -> tuple:
+        """`_bank_step`'s arguments after (slots, data) and before the outputs: the state
+        arrays (x, P, ready, clock, counts, ...) then the constants."""
+        return (*self._state, *self._consts)
 
 
 class Estimates(Sequence):
@@ -297,19 +307,19 @@ class Estimates(Sequence):
     detection), made from its step's output rows when first read."""
 
     def __init__(self, size: int) -> None:
-        self._made = np.full(size, None, object)
+        self._made: list[Estimate | None] = [None] * size
         """Each slot's `Estimate`, once made."""
-        self._outputs = np.full(size, None, object)
-        """Each slot's latest step outputs (out_x, out_P), in a one-element list."""
-        self._row = np.zeros(size, np.int64)
+        self._outputs: list[tuple | None] = [None] * size
+        """Each slot's latest step outputs (out_x, out_P)."""
+        self._row = [0] * size
         """Each slot's row in them."""
 
-    def set(self, slots: np.ndarray, outputs: tuple[np.ndarray, np.ndarray], rows: np.ndarray):
-        """Slot ``slots[i]``'s estimate is row ``rows[i]`` of `TrackerBank.step`'s
-        ``outputs``."""
-        held = np.empty(1, object)  # one object for all the slots, not a sequence to spread
-        held[0] = outputs
-        self._made[slots], self._outputs[slots], self._row[slots] = None, held, rows
+    def set(self, slots: list[int], outputs: tuple[np.ndarray, np.ndarray], ready: np.ndarray):
+        """Slot ``slots[j]``'s estimate is row j of `TrackerBank.step`'s ``outputs`` where
+        ``ready[slots[j]]`` (it has had its first detection)."""
+        for j, i in enumerate(slots):
+            if ready[i]:
+                self._made[i], self._outputs[i], self._row[i] = None, outputs, j
 
     def clear(self, slot: int) -> None:
         """Slot ``slot`` has no estimate."""

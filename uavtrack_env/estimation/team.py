@@ -57,24 +57,35 @@ def _clipped_spectrum(M):  # pragma: no cover (compiled)
 
 
 @numba.njit(cache=True)
-def _sigma_points(x, P, lam):  # pragma: no cover (compiled)
-    """Merwe's 2n + 1 points: x, x + U_i, x - U_i with U^T U = (lam + n) P (`ukf.safe_sqrt`)."""
+def _points(x, P, lam, M, L, out):  # pragma: no cover (compiled)
+    """Merwe's 2n + 1 points into ``out``: x, x + U_i, x - U_i with U^T U = (lam + n) P
+    (`ukf.safe_sqrt`: Cholesky, else the clipped spectrum); M, L: (n, n) work arrays."""
     n = x.shape[0]
-    M = (lam + n) * P
-    M = 0.5 * (M + M.T)
-    L = np.empty((n, n))
-    U = np.empty((n, n))
-    if _cholesky(M, L):
-        U[:] = L.T
-    else:
-        ev, V = _clipped_spectrum(M)
-        for i in range(n):
-            U[i] = math.sqrt(ev[i]) * V[:, i]
-    out = np.empty((2 * n + 1, n))
-    out[0] = x
+    c = lam + n
     for i in range(n):
-        out[1 + i] = x + U[i]
-        out[1 + n + i] = x - U[i]
+        for j in range(n):
+            M[i, j] = 0.5 * (c * P[i, j] + c * P[j, i])
+    out[0] = x
+    if _cholesky(M, L):
+        for i in range(n):
+            for j in range(n):
+                out[1 + i, j] = x[j] + L[j, i]
+                out[1 + n + i, j] = x[j] - L[j, i]
+        return
+    ev, V = _clipped_spectrum(M)
+    for i in range(n):
+        r = math.sqrt(ev[i])
+        for j in range(n):
+            out[1 + i, j] = x[j] + r * V[j, i]
+            out[1 + n + i, j] = x[j] - r * V[j, i]
+
+
+@numba.njit(cache=True)
+def _sigma_points(x, P, lam):  # pragma: no cover (compiled)
+    """`_points` into a new array."""
+    n = x.shape[0]
+    out = np.empty((2 * n + 1, n))
+    _points(x, P, lam, np.empty((n, n)), np.empty((n, n)), out)
     return out
 
 
@@ -99,10 +110,9 @@ def _process(sig, dt, u, yaw, accel):  # pragma: no cover (compiled)
 
 
 @numba.njit(cache=True)
-def _measure(sig, yaw, fx, fy, cu, cv, x3_min):  # pragma: no cover (compiled)
-    """`ukf.measurement_model` (9) of each sigma point: [u_px, v_px, d, psi, r_c]."""
+def _measure(sig, yaw, fx, fy, cu, cv, x3_min, out):  # pragma: no cover (compiled)
+    """`ukf.measurement_model` (9) of each sigma point into ``out``: [u_px, v_px, d, psi, r_c]."""
     c, s = math.cos(yaw), math.sin(yaw)
-    out = np.empty((sig.shape[0], 7))
     for i in range(sig.shape[0]):
         x1, x2 = sig[i, 0], sig[i, 1]
         depth = 1.0 / max(sig[i, 2], x3_min)
@@ -114,48 +124,58 @@ def _measure(sig, yaw, fx, fy, cu, cv, x3_min):  # pragma: no cover (compiled)
         out[i, 4] = sig[i, 4] - (s * X + c * Z)  # r_q - R_c^g r_{q/c} (`cam_to_world_vec`)
         out[i, 5] = sig[i, 5] - (-c * X + s * Z)
         out[i, 6] = sig[i, 6] + Y
-    return out
 
 
 @numba.njit(cache=True)
-def _circular_mean(sig, Wm):  # pragma: no cover (compiled)
-    m = Wm @ sig
+def _moments(sig, Wm, Wc, noise, x, P, y):  # pragma: no cover (compiled)
+    """The unscented transform (`ukf._angle_safe_ut`) of sigma points plus ``noise`` into x,
+    P; ``y`` gets the residuals. psi is averaged on the circle and every point's psi residual
+    wrapped to within pi of that mean (moving a point by 2 pi leaves the circular mean as is,
+    so one pass gives it)."""
+    m, n = sig.shape
     sn, cs = 0.0, 0.0
-    for i in range(sig.shape[0]):
+    for i in range(m):
         sn += Wm[i] * math.sin(sig[i, PSI])
         cs += Wm[i] * math.cos(sig[i, PSI])
-    m[PSI] = math.atan2(sn, cs)
-    return m
+    for j in range(n):
+        acc = 0.0
+        for i in range(m):
+            acc += Wm[i] * sig[i, j]
+        x[j] = acc
+    x[PSI] = math.atan2(sn, cs)
+    for i in range(m):
+        for j in range(n):
+            y[i, j] = sig[i, j] - x[j]
+        y[i, PSI] = _wrap(sig[i, PSI] - x[PSI])
+    for a in range(n):
+        for b in range(a, n):
+            acc = 0.0
+            for i in range(m):
+                acc += Wc[i] * y[i, a] * y[i, b]
+            P[a, b] = acc + noise[a, b]
+            P[b, a] = acc + noise[b, a]
 
 
 @numba.njit(cache=True)
-def _unscented(sig, Wm, Wc, noise):  # pragma: no cover (compiled)
-    """Mean and covariance of sigma points plus ``noise``, psi averaged on the circle: psi of
-    every point is first moved within pi of the circular mean (`ukf._angle_safe_ut`)."""
-    mean = _circular_mean(sig, Wm)
-    s = sig.copy()
-    for i in range(s.shape[0]):
-        s[i, PSI] = mean[PSI] + _wrap(sig[i, PSI] - mean[PSI])
-    x = _circular_mean(s, Wm)
-    y = s - x
-    return x, (y.T * Wc) @ y + noise
-
-
-@numba.njit(cache=True)
-def _guard(x, P, lim, x3_lo, x3_hi, max_std):  # pragma: no cover (compiled)
-    """`ukf.tidy_states` of one filter: wrap psi, clamp x1..x3 (in place); symmetrise P, repair
-    it by eigenvalue clipping if Cholesky fails, cap its stds. Returns (P, repaired)."""
+def _guard(x, P, L, lim, x3_lo, x3_hi, max_std):  # pragma: no cover (compiled)
+    """`ukf.tidy_states` of one filter in place: wrap psi, clamp x1..x3; symmetrise P, repair
+    it by eigenvalue clipping if Cholesky fails, cap its stds. L: (n, n) work array. Returns
+    whether P was repaired."""
     x[PSI] = _wrap(x[PSI])
     x[0] = min(max(x[0], -lim), lim)
     x[1] = min(max(x[1], -lim), lim)
     x[2] = min(max(x[2], x3_lo), x3_hi)
     n = P.shape[0]
-    P = 0.5 * (P + P.T)
-    repaired = not _cholesky(P, np.empty((n, n)))
+    for a in range(n):
+        for b in range(a + 1, n):
+            P[a, b] = P[b, a] = 0.5 * (P[a, b] + P[b, a])
+    repaired = not _cholesky(P, L)
     if repaired:
         ev, V = _clipped_spectrum(P)
-        P = (V * ev) @ V.T
-        P = 0.5 * (P + P.T)
+        R = (V * ev) @ V.T
+        for a in range(n):
+            for b in range(n):
+                P[a, b] = 0.5 * (R[a, b] + R[b, a])
     scale = np.empty(n)
     capped = False
     for i in range(n):
@@ -166,15 +186,43 @@ def _guard(x, P, lim, x3_lo, x3_hi, max_std):  # pragma: no cover (compiled)
         for i in range(n):
             for j in range(n):
                 P[i, j] *= scale[i] * scale[j]
-    return P, repaired
+    return repaired
 
 
 @numba.njit(cache=True)
-def _residual(a, b):  # pragma: no cover (compiled)
-    d = a - b
-    for i in range(d.shape[0]):
-        d[i, PSI] = _wrap(d[i, PSI])
-    return d
+def _kalman_update(x, P, z, zp, S, Pxz, L, K):  # pragma: no cover (compiled)
+    """filterpy's Kalman update from the unscented moments, in place: K = Pxz S^-1 (Cholesky
+    solve; S is a covariance plus R), x += K (z - zp) with psi wrapped, P -= K Pxz^T
+    (= K S K^T)."""
+    n, q = Pxz.shape
+    if _cholesky(S, L):
+        for a in range(n):  # solve S K[a]^T = Pxz[a]^T
+            for c in range(q):
+                t = Pxz[a, c]
+                for k in range(c):
+                    t -= L[c, k] * K[a, k]
+                K[a, c] = t / L[c, c]
+            for c in range(q - 1, -1, -1):
+                t = K[a, c]
+                for k in range(c + 1, q):
+                    t -= L[k, c] * K[a, k]
+                K[a, c] = t / L[c, c]
+    else:
+        K[:] = Pxz @ np.linalg.inv(S)
+    innovation = z - zp
+    innovation[PSI] = _wrap(innovation[PSI])
+    for a in range(n):
+        t = 0.0
+        for c in range(q):
+            t += K[a, c] * innovation[c]
+        x[a] += t
+    x[PSI] = _wrap(x[PSI])
+    for a in range(n):
+        for b in range(n):
+            t = 0.0
+            for c in range(q):
+                t += K[a, c] * Pxz[b, c]
+            P[a, b] -= t
 
 
 @numba.njit(cache=True)
@@ -201,29 +249,37 @@ def _step_filters(
     """Predict (10) and, where ``seen``, update (11) K filters in place; repairs per filter."""
     fx, fy, cu, cv = camera[0], camera[1], camera[2], camera[3]
     lo, hi = x3_bounds[0], x3_bounds[1]
-    repairs = np.zeros(x.shape[0], np.int64)
-    for k in range(x.shape[0]):
-        sig = _sigma_points(x[k], P[k], lam)
+    K, n = x.shape
+    m, q = 2 * n + 1, z.shape[1]
+    sig, y = np.empty((m, n)), np.empty((m, n))
+    sig_h, dz = np.empty((m, q)), np.empty((m, q))
+    M, L = np.empty((n, n)), np.empty((n, n))
+    zp, S, Ls = np.empty(q), np.empty((q, q)), np.empty((q, q))
+    Pxz, gain = np.empty((n, q)), np.empty((n, q))
+    repairs = np.zeros(K, np.int64)
+    for k in range(K):
+        xk, Pk = x[k], P[k]
+        _points(xk, Pk, lam, M, L, sig)
         _process(sig, dt, u[k], yaw_before[k], accel[k])
-        xk, Pk = _unscented(sig, Wm, Wc, Q)
-        Pk, rep = _guard(xk, Pk, x12_limit, lo, hi, max_std)
-        repairs[k] += rep
-        if seen[k]:
-            sig = _sigma_points(xk, Pk, lam)
-            sig_h = _measure(sig, yaw[k], fx, fy, cu, cv, lo)
-            zp, S = _unscented(sig_h, Wm, Wc, R[k])
-            dx = _residual(sig, xk)
-            dz = _residual(sig_h, zp)
-            gain = ((dx.T * Wc) @ dz) @ np.linalg.inv(S)
-            innovation = z[k] - zp
-            innovation[PSI] = _wrap(innovation[PSI])
-            xk = xk + gain @ innovation
-            xk[PSI] = _wrap(xk[PSI])
-            Pk = Pk - gain @ (S @ gain.T)
-            Pk, rep = _guard(xk, Pk, x12_limit, lo, hi, max_std)
-            repairs[k] += rep
-        x[k] = xk
-        P[k] = Pk
+        _moments(sig, Wm, Wc, Q, xk, Pk, y)
+        repairs[k] += _guard(xk, Pk, L, x12_limit, lo, hi, max_std)
+        if not seen[k]:
+            continue
+        _points(xk, Pk, lam, M, L, sig)
+        _measure(sig, yaw[k], fx, fy, cu, cv, lo, sig_h)
+        _moments(sig_h, Wm, Wc, R[k], zp, S, dz)
+        for i in range(m):  # the state residuals
+            for a in range(n):
+                y[i, a] = sig[i, a] - xk[a]
+            y[i, PSI] = _wrap(y[i, PSI])
+        for a in range(n):
+            for c in range(q):
+                t = 0.0
+                for i in range(m):
+                    t += Wc[i] * y[i, a] * dz[i, c]
+                Pxz[a, c] = t
+        _kalman_update(xk, Pk, z[k], zp, S, Pxz, Ls, gain)
+        repairs[k] += _guard(xk, Pk, L, x12_limit, lo, hi, max_std)
     return repairs
 
 
