@@ -34,8 +34,8 @@ def _same_report(a, b) -> None:
 def test_the_team_certifies_as_each_uav_alone(dynamics):
     """`certify_team` (the pass's own arrays, and rows gathered from several passes) gives every
     UAV the action and report its own `certify_trusted` gives, and its summary (the telemetry,
-    read from the arrays) says what that report says, for commands the shield keeps and
-    corrects (every status of the layers: tests/test_qp_layers.py)."""
+    read from the arrays, for one UAV or all) says what that report says, for commands the
+    shield keeps and corrects (every status of the layers: tests/test_qp_layers.py)."""
     env = uavtrack_v0.parallel_env(**WORLD, dynamics={"model": dynamics})
     shield = CBFShield(env)
     _, infos = shield.reset(seed=11)
@@ -46,7 +46,8 @@ def test_the_team_certifies_as_each_uav_alone(dynamics):
         agents = [shield.onboard[a] for a in infos]
         u = rng.uniform(-1.5, 1.5, (len(agents), 4)) * scale * rng.choice([0.02, 1.0])
         together = certify_team(agents, u)
-        summaries = [together.summary(j) for j in range(len(agents))]  # before any report
+        summaries = together.summaries()  # before any report
+        assert summaries == [together.summary(j) for j in range(len(agents))]
         rows = [a.rows() for a in agents]
         own = [a.info["own"] for a in agents]
         gathered = agents[0].filter.certify_many(

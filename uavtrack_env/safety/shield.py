@@ -732,9 +732,20 @@ class Certificates:
                 "slack": rep.slack, "hard_violation": rep.hard_violation, "min_h": min_h,
                 "min_hard_h": min_hard_h,
             }  # fmt: skip
-        *family, hard = self.lows[j].tolist()
+        return self._summary(j, self.lows[j].tolist(), bool(self.changed[j]))
+
+    def summaries(self) -> list[dict]:
+        """`summary` of every UAV."""
+        if self.lows is None or self.rows_at is None or self._made.count(None) < len(self):
+            return [self.summary(j) for j in range(len(self))]
+        lows, changed = self.lows.tolist(), self.changed.tolist()
+        return [self._summary(j, lows[j], changed[j]) for j in range(len(lows))]
+
+    def _summary(self, j: int, lows: list[float], changed: bool) -> dict:
+        """`summary` from the arrays: UAV j's ``lows`` row and whether it was ``changed``."""
+        *family, hard = lows
         min_h = {name: low for name, low in zip(KIND_NAMES, family, strict=True) if low == low}
-        if not self.changed[j]:
+        if not changed:
             return {
                 "active": False, "correction_norm": 0.0, "status": "nominal", "active_rows": [],
                 "gave_up": [], "slack": 0.0, "hard_violation": 0.0, "min_h": min_h,

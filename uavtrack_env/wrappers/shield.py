@@ -139,14 +139,14 @@ class CBFShield(BaseParallelWrapper):
         obs, rewards, terms, truncs, infos = out
         self._observe(infos)
         self._certified = (names, done)
-        order = {a: j for j, a in enumerate(names)}
+        summaries = dict(zip(names, done.summaries(), strict=True)) if done is not None else {}
         proposed, was_clipped = u / self._scale, clipped.tolist()
         for agent, info in infos.items():
             i = self._ids[agent]
             self._clips[agent] += was_clipped[i]
             info["action_clipped"] = was_clipped[i]
             info["n_clipped_actions"] = self._clips[agent]
-            info["shield"] = shield = self._telemetry(agent, done.summary(order[agent]))
+            info["shield"] = shield = self._telemetry(agent, summaries[agent])
             shield["proposed"], shield["action"] = proposed[i], certified[i]
             if terms[agent] or truncs[agent]:
                 shield["episode"] = self._episode_summary(agent)
