@@ -176,3 +176,60 @@ def test_a_lone_stack_takes_teams_of_any_size_a_shared_one_says_what_is_wrong():
     assert shared.team is team and team.n == 3
     small.close()
     large.close()
+
+
+@pytest.mark.parametrize("worlds", [1, 3])
+def test_one_compiled_call_per_team_equals_the_call_by_call_route(worlds, monkeypatch):
+    """`observe_frame` (the input rows, the bank's UKF step and the pass in one compiled call)
+    leaves every team's state, estimates and pass outputs bit-identical to the route that takes
+    them call by call (`input_rows`, `TrackerBank.step`, `observe_pass`), for K worlds at once,
+    with UAVs that left the team or come in any order, dropouts, lost messages and lag
+    dynamics."""
+    from uavtrack_env import onboard
+    from uavtrack_env.onboard import observe_frame, onboard_team
+
+    envs = [uavtrack_v0.parallel_env(**WORLD, dynamics={"model": "lag"}) for _ in range(worlds)]
+    cfg = expert_config("tuned")
+    teams = [onboard_team(envs[0].possible_agents, envs[0].config, cfg, worlds) for _ in range(2)]
+    for k, env in enumerate(envs):
+        env.reset(seed=20 + k)
+        for team in teams:
+            for agent in team[k]:
+                agent.reset(env.layout, env.possible_agents)
+    one_bank = onboard._one_bank
+    rng = np.random.default_rng(6)
+    n, compared = len(envs[0].possible_agents), 0
+    for _ in range(90):
+        live = [(k, env.possible_agents.index(a)) for k, env in enumerate(envs) for a in env.agents]
+        if not live:
+            break
+        live = [live[j] for j in rng.permutation(len(live))]  # in any order
+        ks, ids = np.array(live).T
+        frame = [envs[k].last_detection for k in range(worlds)]
+        det = type(frame[0])(*[np.stack([getattr(f, name) for f in frame]) for name in
+                               frame[0].__dataclass_fields__])  # fmt: skip
+        state = tuple(np.stack([getattr(e, name) for e in envs]) for name in
+                      ("position", "yaw", "velocity", "yaw_rate"))  # fmt: skip
+        heard = np.stack([e.last_received for e in envs])[ks, ids]
+        outs = []
+        for route, team in zip((one_bank, lambda agents: False), teams, strict=True):
+            monkeypatch.setattr(onboard, "_one_bank", route)
+            agents = [team[k][i] for k, i in live]
+            observe_frame(agents, det, state, ks * n + ids, heard, state[0])
+            outs.append(agents[0]._seen[0])
+        used = outs[0].start[-1]  # the rows written; room beyond them is not
+        for a, b in zip(*[(o.A[:used], o.floats[:, :used], o.ints[:, :used], *o[4:], o.data)
+                          for o in outs], strict=True):  # fmt: skip
+            np.testing.assert_array_equal(a, b)
+        for name, value in vars(teams[0][0][0].team).items():
+            np.testing.assert_array_equal(value, vars(teams[1][0][0].team)[name], err_msg=name)
+        banks = [team[0][0].tracker.bank for team in teams]
+        for a, b in zip(banks[0].kernel_args, banks[1].kernel_args, strict=True):
+            np.testing.assert_array_equal(a, b)
+        compared += len(live)
+        for env in envs:
+            if env.agents:
+                env.step({a: rng.uniform(-1, 1, 4) for a in env.agents})
+    assert compared > 150 * worlds
+    for env in envs:
+        env.close()

@@ -331,7 +331,7 @@ class UAVTrackEnv(ParallelEnv):
         for agent, act in actions.items():
             a[self._index[agent]] = act
         clipped = np.any(np.abs(a) > 1.0, axis=1)
-        return np.clip(a, -1.0, 1.0) * self._scale, clipped
+        return np.minimum(np.maximum(a, -1.0), 1.0) * self._scale, clipped
 
     @staticmethod
     def check_action(agent: str, act: Any) -> np.ndarray:

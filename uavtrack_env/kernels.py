@@ -11,7 +11,7 @@ from collections.abc import Iterable
 from typing import Any
 
 from .estimation.bank import _bank_step
-from .onboard_pass import input_rows_of, observe_pass, observe_step
+from .onboard_pass import observe_frame_step, observe_pass, observe_step
 from .safety.qp_arrays import nominal_holds
 from .safety.qp_layers import certify_changed, certify_many
 
@@ -20,7 +20,7 @@ def onboard_kernels() -> list[Any]:
     """The kernels an onboard stack's first step compiles (the shield's team certification and
     the expert's per-UAV one)."""
     return [
-        input_rows_of, _bank_step, observe_pass, observe_step, certify_many, nominal_holds,
+        _bank_step, observe_pass, observe_step, observe_frame_step, certify_many, nominal_holds,
         certify_changed,
     ]  # fmt: skip
 

@@ -16,13 +16,13 @@ from __future__ import annotations
 import dataclasses
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 
 from .config import DT, CameraConfig, EnvConfig
 from .estimation import Estimate, Measurement, TargetEstimator, UKFConfig
-from .estimation.bank import TrackerBank
+from .estimation.bank import INPUT_COLUMNS, TrackerBank
 from .geometry import world_to_cam_vec
 from .onboard_pass import (
     BOX_COLUMNS,
@@ -31,6 +31,7 @@ from .onboard_pass import (
     believe,
     car_box_arrays,
     input_rows_of,
+    observe_frame_step,
     observe_pass,
     observe_step,
     take_and_believe,
@@ -131,12 +132,17 @@ def input_rows(det: Detections, state: tuple[np.ndarray, ...]) -> np.ndarray:
     """`bank.INPUT_COLUMNS` rows (..., 15) of a detector frame ``det`` and the UAVs' own state
     (position, yaw, velocity, yaw rate), arrays with the same leading axes: what `input_row`
     reads from each UAV's info (`env.sensor_infos`), without the dicts (one compiled call)."""
-    arrays = (det.detected, det.u, det.v, det.depth, det.psi, det.truncated, *state)
     lead = det.detected.shape
-    if len(lead) == 1:  # one team: the arrays as they are
-        return input_rows_of(*arrays)
-    flat = [np.ascontiguousarray(a).reshape(-1, *a.shape[len(lead) :]) for a in arrays]
-    return input_rows_of(*flat).reshape(*lead, 15)
+    return input_rows_of(*_flat_frame(det, state)).reshape(*lead, 15)
+
+
+def _flat_frame(det: Detections, state: tuple[np.ndarray, ...]) -> tuple[np.ndarray, ...]:
+    """`input_rows_of`'s arrays of a frame: its leading axes flattened into one."""
+    arrays = (det.detected, det.u, det.v, det.depth, det.psi, det.truncated, *state)
+    lead = len(det.detected.shape)
+    if lead == 1:  # one team: the arrays as they are
+        return arrays
+    return tuple(np.ascontiguousarray(a).reshape(-1, *a.shape[lead:]) for a in arrays)
 
 
 def _step_alone(tracker: OnboardTracker, row: np.ndarray) -> None:
@@ -595,18 +601,8 @@ def observe_arrays(
     box, the CBF rows) in one `observe_pass` per `TeamState`; both in one compiled call
     (`observe_step`) when the agents are one team whose trackers share a bank slot for slot.
     ``infos``: the infos the rows came from (``agent.info``), if any."""
-    team, bank = agents[0].team, agents[0].tracker.bank
-    if bank is not None and all(
-        a.team is team and a.tracker.bank is bank and a.tracker.slot == a.slot for a in agents
-    ):
-        slots, outputs = bank.prepare([a.slot for a in agents], data)
-        out = PassOutput.allocate(data, team.n - 1, team.obs_c.shape[1])
-        observe_step(
-            slots, team.n, data, heard, sent, bank.kernel_args, *outputs, team.arrays(),
-            agents[0]._pass_params, out[1:],
-        )  # fmt: skip
-        bank.estimates.set(slots.tolist(), outputs, bank._ready)
-        _take_pass(agents, out, infos)
+    if _one_bank(agents):
+        _fused_step(agents, data, heard, sent, infos, observe_step)
         return
     update_trackers([a.tracker for a in agents], data)
     groups: dict[int, list[int]] = {}
@@ -618,6 +614,58 @@ def observe_arrays(
             [agents[j] for j in members], data[pick], heard[pick], sent,
             None if infos is None else [infos[j] for j in members],
         )  # fmt: skip
+
+
+def observe_frame(
+    agents: Sequence[OnboardAgent],
+    det: Detections,
+    state: tuple[np.ndarray, ...],
+    uavs: np.ndarray,
+    heard: np.ndarray,
+    sent: np.ndarray,
+    infos: Sequence[dict] | None = None,
+) -> None:
+    """`observe_arrays` of the input rows (`input_rows`) of the UAVs ``uavs`` of a detector
+    frame ``det`` and own ``state`` (flat indices over their leading axes: world n + index),
+    the rows built in the same compiled call (`observe_frame_step`) where `observe_arrays`
+    takes one."""
+    uavs = np.asarray(uavs, np.int64)
+    if not _one_bank(agents):
+        observe_arrays(agents, input_rows(det, state).reshape(-1, 15)[uavs], heard, sent, infos)
+        return
+    data = np.empty((len(uavs), len(INPUT_COLUMNS)))
+    frame = _flat_frame(det, state)
+    _fused_step(agents, data, heard, sent, infos, observe_frame_step, uavs, frame)
+
+
+def _one_bank(agents: Sequence[OnboardAgent]) -> bool:
+    """The agents are of one team, their trackers of one bank, slot for slot (`observe_step`)."""
+    team, bank = agents[0].team, agents[0].tracker.bank
+    return bank is not None and all(
+        a.team is team and a.tracker.bank is bank and a.tracker.slot == a.slot for a in agents
+    )
+
+
+def _fused_step(
+    agents: Sequence[OnboardAgent],
+    data: np.ndarray,
+    heard: np.ndarray,
+    sent: np.ndarray,
+    infos: Sequence[dict] | None,
+    kernel: Any,
+    *lead: Any,
+) -> None:
+    """``kernel(*lead, slots, ...)``: `observe_step`'s arguments for `_one_bank` agents; the
+    bank and the agents then take its outputs."""
+    team, bank = agents[0].team, agents[0].tracker.bank
+    slots, outputs = bank.prepare([a.slot for a in agents], data)
+    out = PassOutput.allocate(data, team.n - 1, team.obs_c.shape[1])
+    kernel(
+        *lead, slots, team.n, data, heard, sent, bank.kernel_args, *outputs, team.arrays(),
+        agents[0]._pass_params, out[1:],
+    )  # fmt: skip
+    bank.estimates.set(slots.tolist(), outputs, bank._ready)
+    _take_pass(agents, out, infos)
 
 
 def _observe_pass(

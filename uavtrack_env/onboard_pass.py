@@ -146,23 +146,33 @@ def take_and_believe(
 
 
 @numba.njit(cache=True)
+def _input_row(
+    i, detected, u, v, depth, psi, truncated, position, yaw, velocity, yaw_rate, row
+):  # pragma: no cover (compiled)
+    """UAV i's `bank.INPUT_COLUMNS` row of flat arrays (N, ...) into ``row``."""
+    for a in range(3):
+        row[a] = position[i, a]
+        row[4 + a] = velocity[i, a]
+    row[3], row[7] = yaw[i], yaw_rate[i]
+    if detected[i]:
+        row[8], row[9], row[10], row[11], row[12] = 1.0, u[i], v[i], depth[i], psi[i]
+        row[13] = 1.0 if truncated[i, 0] else 0.0
+        row[14] = 1.0 if truncated[i, 1] else 0.0
+    else:
+        row[8:] = 0.0
+        row[11] = 1.0
+
+
+@numba.njit(cache=True)
 def input_rows_of(
     detected, u, v, depth, psi, truncated, position, yaw, velocity, yaw_rate
 ):  # pragma: no cover (compiled)
     """`onboard.input_rows` of flat arrays (N, ...): (N, 15) `bank.INPUT_COLUMNS` rows."""
-    out = np.zeros((detected.shape[0], 15))
-    for j in range(detected.shape[0]):
-        row = out[j]
-        for a in range(3):
-            row[a] = position[j, a]
-            row[4 + a] = velocity[j, a]
-        row[3], row[7] = yaw[j], yaw_rate[j]
-        if detected[j]:
-            row[8], row[9], row[10], row[11], row[12] = 1.0, u[j], v[j], depth[j], psi[j]
-            row[13] = 1.0 if truncated[j, 0] else 0.0
-            row[14] = 1.0 if truncated[j, 1] else 0.0
-        else:
-            row[11] = 1.0
+    out = np.empty((detected.shape[0], 15))
+    for i in range(detected.shape[0]):
+        _input_row(
+            i, detected, u, v, depth, psi, truncated, position, yaw, velocity, yaw_rate, out[i]
+        )
     return out
 
 
@@ -302,6 +312,21 @@ def observe_step(
         slots, team_n, data, heard, sent, slots, x, P, ready, counts, *team_arrays, *params,
         *outs,
     )  # fmt: skip
+
+
+@numba.njit(cache=True)
+def observe_frame_step(
+    uavs, frame, slots, team_n, data, heard, sent, bank_args, out_x, out_P, team_arrays, params,
+    outs,
+):  # fmt: skip  # pragma: no cover (compiled)
+    """`observe_step` whose input rows ``data`` it first fills: row j is UAV ``uavs[j]``'s of
+    ``frame`` = (detected, u, v, depth, psi, truncated, position, yaw, velocity, yaw_rate),
+    flat arrays (N, ...) (`input_rows_of`)."""
+    for j in range(uavs.shape[0]):
+        _input_row(uavs[j], *frame, data[j])
+    observe_step(
+        slots, team_n, data, heard, sent, bank_args, out_x, out_P, team_arrays, params, outs
+    )
 
 
 class PassOutput(NamedTuple):

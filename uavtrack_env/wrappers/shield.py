@@ -25,13 +25,7 @@ from pettingzoo.utils.wrappers import BaseParallelWrapper
 
 from uavtrack_env.config import EnvConfig
 from uavtrack_env.env import UAVTrackEnv
-from uavtrack_env.onboard import (
-    certify_team,
-    input_rows,
-    observe_arrays,
-    observe_team,
-    onboard_team,
-)
+from uavtrack_env.onboard import certify_team, observe_frame, observe_team, onboard_team
 from uavtrack_env.presets import ExpertConfig, expert_config
 from uavtrack_env.safety import Certificates, SafetyContext, ShieldReport
 
@@ -119,17 +113,18 @@ class CBFShield(BaseParallelWrapper):
         u, clipped = self._raw.validate_actions(actions)
         names = list(actions)
         live = [self._ids[a] for a in names]
-        u_safe = u.copy()
         done = certify_team([self.onboard[a] for a in names], u[live]) if names else None
-        changed = []
+        proposed = u / self._scale
+        certified, changed = proposed.copy(), []
         if done is not None:
-            u_safe[live] = done.action
+            certified[live] = done.action / self._scale
             changed = [i for i, c in zip(live, done.changed.tolist(), strict=True) if c]
-        certified = np.clip(u_safe / self._scale, -1.0, 1.0)
+        np.minimum(np.maximum(certified, -1.0, out=certified), 1.0, out=certified)
         # An unchanged action is passed through as given (bit-identical behaviour).
         if self.env is self._raw:  # checked above: the env's step without checking again
             u_env, clipped_env = u.copy(), clipped.copy()
-            u_env[changed], clipped_env[changed] = certified[changed] * self._scale, False
+            if changed:
+                u_env[changed], clipped_env[changed] = certified[changed] * self._scale, False
             out = self._raw._step_checked(u_env, clipped_env)
         else:
             out = self.env.step(
@@ -140,7 +135,7 @@ class CBFShield(BaseParallelWrapper):
         self._observe(infos)
         self._certified = (names, done)
         summaries = dict(zip(names, done.summaries(), strict=True)) if done is not None else {}
-        proposed, was_clipped = u / self._scale, clipped.tolist()
+        was_clipped = clipped.tolist()
         for agent, info in infos.items():
             i = self._ids[agent]
             self._clips[agent] += was_clipped[i]
@@ -201,8 +196,9 @@ class CBFShield(BaseParallelWrapper):
             observe_team(agents, list(infos.values()))
             return
         raw = self._raw
-        rows = [self._ids[a] for a in infos]
+        uavs = [self._ids[a] for a in infos]
         state = (raw.position, raw.yaw, raw.velocity, raw.yaw_rate)
-        data = input_rows(raw.last_detection, state)[rows]
-        heard = raw.last_received[rows]
-        observe_arrays(agents, data, heard, raw.position[None], list(infos.values()))
+        heard = raw.last_received[uavs]
+        observe_frame(
+            agents, raw.last_detection, state, uavs, heard, raw.position[None], list(infos.values())
+        )

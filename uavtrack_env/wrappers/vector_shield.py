@@ -12,13 +12,7 @@ from typing import Any
 
 import numpy as np
 
-from uavtrack_env.onboard import (
-    certify_team,
-    input_rows,
-    observe_arrays,
-    observe_team,
-    onboard_team,
-)
+from uavtrack_env.onboard import certify_team, observe_frame, observe_team, onboard_team
 from uavtrack_env.presets import ExpertConfig, expert_config
 from uavtrack_env.safety import Certificates, ShieldReport
 from uavtrack_env.vector import UAVTrackVectorEnv
@@ -132,9 +126,9 @@ class VectorCBFShield:
             take[batched] = venv._stepped[batched]
             ks, ids = np.nonzero(take)
             m, position = venv._sensed, venv._state[0]
-            data = input_rows(m.detections, venv._state)[ks, ids]
             agents = [self.onboard[k][i] for k, i in zip(ks.tolist(), ids.tolist(), strict=True)]
-            observe_arrays(agents, data, m.received[ks, ids], position)
+            uavs = ks * self.n_agents + ids
+            observe_frame(agents, m.detections, venv._state, uavs, m.received[ks, ids], position)
         agents, infos, done = [], [], set(batched)
         for k in worlds:
             if k in done:
