@@ -7,10 +7,9 @@ single-threaded BLAS. The shield's cost per agent-step is split into
 * certify: one agent's share of the team's certification = the CBF-QP (47) on each agent's
   rows, all agents in one compiled call (`onboard.certify_team`; the rows are built when the
   agents observe their infos, which ``observe`` includes);
-* ukf: the team's UKF step that gives the shield its target estimates (`TrackerBank.step`, one
-  compiled call for all agents), per agent-step;
-* observe: the UKF plus the team-mates' messages, the safety context and the rows, per
-  agent-step;
+* observe: the input rows, the team's UKF step (its target estimates), the team-mates'
+  messages, the car's box and the rows, in one compiled call for all agents
+  (`onboard.observe_frame`), per agent-step;
 * own: the wrapper's own time per agent-step (its step minus the env's step inside it, i.e.
   the env's action validation and its checked step, both of which a bare ``env.step`` runs):
   the shield's cost, estimator included, amortised over a step of all agents;
@@ -90,11 +89,10 @@ def _timed_share(fn, sink: list[float]):
 
 def run(shield: bool, amplitude: float, steps: int, seed: int) -> dict[str, np.ndarray]:
     """Step times (s) over ``steps`` steps of fresh seeded episodes, plus component times (the
-    UKF's and the observation's per team step)."""
+    observation's per team step)."""
     times: dict[str, list[float]] = {
         "step": [],
         "certify": [],
-        "ukf": [],
         "observe": [],
         "env": [],
         "validate": [],
@@ -110,8 +108,6 @@ def run(shield: bool, amplitude: float, steps: int, seed: int) -> dict[str, np.n
         env = CBFShield(raw) if shield else raw
         env.reset(seed=seed + episode)
         if shield:  # instance-level wrappers: the class itself has no timing code
-            bank = env.onboard[raw.possible_agents[0]].tracker.bank
-            bank.step = _timed(bank.step, times["ukf"])
             env._observe = _timed(env._observe, times["observe"])
             raw._step_checked = _timed(raw._step_checked, times["env"])
             raw.validate_actions = _timed(raw.validate_actions, times["validate"])
@@ -235,7 +231,7 @@ def main() -> None:
 
     run(True, 1.0, 50, args.seed + 10**6)  # warm-up: loads the compiled kernels (numba's cache)
     for label, amp in (("random actions", 1.0), ("small actions", 0.05)):
-        bare_t, shield_t, bare_a, shield_a, cert, ukf, obs, act, own = ([] for _ in range(9))
+        bare_t, shield_t, bare_a, shield_a, cert, obs, act, own = ([] for _ in range(8))
         for r in range(args.repeats):
             bare = run(False, amp, args.steps, args.seed + 1000 * r)
             shielded = run(True, amp, args.steps, args.seed + 1000 * r)
@@ -244,7 +240,6 @@ def main() -> None:
             bare_a.append(bare["step"].sum() / bare["agents"].sum())  # per agent-step
             shield_a.append(shielded["step"].sum() / shielded["agents"].sum())
             cert.append(np.median(shielded["certify"]))
-            ukf.append(np.median(shielded["ukf"]) / N_UAVS)
             obs.append(np.median(shielded["observe"]) / N_UAVS)
             act.append(shielded["active"].mean())
             env_time = shielded["env"].sum() + shielded["validate"].sum()
@@ -262,7 +257,6 @@ def main() -> None:
         print(
             "  per agent-step (us): "
             f"certify median {np.median(cert) * 1e6:6.1f}   "
-            f"UKF median {np.median(ukf) * 1e6:6.1f}   "
             f"observe median {np.median(obs) * 1e6:6.1f}"
         )
         print(

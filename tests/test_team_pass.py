@@ -210,12 +210,12 @@ def test_one_compiled_call_per_team_equals_the_call_by_call_route(worlds, monkey
                                frame[0].__dataclass_fields__])  # fmt: skip
         state = tuple(np.stack([getattr(e, name) for e in envs]) for name in
                       ("position", "yaw", "velocity", "yaw_rate"))  # fmt: skip
-        heard = np.stack([e.last_received for e in envs])[ks, ids]
+        received = np.stack([e.last_received for e in envs])
         outs = []
         for route, team in zip((one_bank, lambda agents: False), teams, strict=True):
             monkeypatch.setattr(onboard, "_one_bank", route)
             agents = [team[k][i] for k, i in live]
-            observe_frame(agents, det, state, ks * n + ids, heard, state[0])
+            observe_frame(agents, det, state, ks * n + ids, received, state[0])
             outs.append(agents[0]._seen[0])
         used = outs[0].start[-1]  # the rows written; room beyond them is not
         for a, b in zip(*[(o.A[:used], o.floats[:, :used], o.ints[:, :used], *o[4:], o.data)

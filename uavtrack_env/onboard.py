@@ -621,21 +621,24 @@ def observe_frame(
     det: Detections,
     state: tuple[np.ndarray, ...],
     uavs: np.ndarray,
-    heard: np.ndarray,
+    received: np.ndarray,
     sent: np.ndarray,
     infos: Sequence[dict] | None = None,
 ) -> None:
-    """`observe_arrays` of the input rows (`input_rows`) of the UAVs ``uavs`` of a detector
-    frame ``det`` and own ``state`` (flat indices over their leading axes: world n + index),
-    the rows built in the same compiled call (`observe_frame_step`) where `observe_arrays`
-    takes one."""
+    """`observe_arrays` of the UAVs ``uavs`` of a frame: a detector frame ``det``, the UAVs'
+    own ``state`` (their input rows: `input_rows`) and the messages ``received`` (the
+    frame's leading axes, then one flag per team member), ``uavs`` being flat indices over
+    those leading axes (world n + index). The rows are built in the same compiled call
+    (`observe_frame_step`) where `observe_arrays` takes one."""
     uavs = np.asarray(uavs, np.int64)
+    heard = received.reshape(-1, received.shape[-1])
     if not _one_bank(agents):
-        observe_arrays(agents, input_rows(det, state).reshape(-1, 15)[uavs], heard, sent, infos)
+        rows = input_rows(det, state).reshape(-1, len(INPUT_COLUMNS))
+        observe_arrays(agents, rows[uavs], heard[uavs], sent, infos)
         return
     data = np.empty((len(uavs), len(INPUT_COLUMNS)))
     frame = _flat_frame(det, state)
-    _fused_step(agents, data, heard, sent, infos, observe_frame_step, uavs, frame)
+    _fused_step(agents, data, None, sent, infos, observe_frame_step, uavs, frame, heard)
 
 
 def _one_bank(agents: Sequence[OnboardAgent]) -> bool:
@@ -649,19 +652,21 @@ def _one_bank(agents: Sequence[OnboardAgent]) -> bool:
 def _fused_step(
     agents: Sequence[OnboardAgent],
     data: np.ndarray,
-    heard: np.ndarray,
+    heard: np.ndarray | None,
     sent: np.ndarray,
     infos: Sequence[dict] | None,
     kernel: Any,
     *lead: Any,
 ) -> None:
-    """``kernel(*lead, slots, ...)``: `observe_step`'s arguments for `_one_bank` agents; the
-    bank and the agents then take its outputs."""
+    """``kernel(*lead, slots, team_n, data, [heard,] sent, ...)``: `observe_step`'s arguments
+    for `_one_bank` agents (``heard`` None: the kernel takes none); the bank and the agents
+    then take its outputs."""
     team, bank = agents[0].team, agents[0].tracker.bank
     slots, outputs = bank.prepare([a.slot for a in agents], data)
     out = PassOutput.allocate(data, team.n - 1, team.obs_c.shape[1])
+    messages = (sent,) if heard is None else (heard, sent)
     kernel(
-        *lead, slots, team.n, data, heard, sent, bank.kernel_args, *outputs, team.arrays(),
+        *lead, slots, team.n, data, *messages, bank.kernel_args, *outputs, team.arrays(),
         agents[0]._pass_params, out[1:],
     )  # fmt: skip
     bank.estimates.set(slots.tolist(), outputs, bank._ready)

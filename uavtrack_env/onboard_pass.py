@@ -316,14 +316,17 @@ def observe_step(
 
 @numba.njit(cache=True)
 def observe_frame_step(
-    uavs, frame, slots, team_n, data, heard, sent, bank_args, out_x, out_P, team_arrays, params,
-    outs,
+    uavs, frame, received, slots, team_n, data, sent, bank_args, out_x, out_P, team_arrays,
+    params, outs,
 ):  # fmt: skip  # pragma: no cover (compiled)
-    """`observe_step` whose input rows ``data`` it first fills: row j is UAV ``uavs[j]``'s of
-    ``frame`` = (detected, u, v, depth, psi, truncated, position, yaw, velocity, yaw_rate),
-    flat arrays (N, ...) (`input_rows_of`)."""
+    """`observe_step` of the UAVs ``uavs`` of a frame: their input rows ``data`` (which it
+    fills; row j is UAV ``uavs[j]``'s of ``frame`` = (detected, u, v, depth, psi, truncated,
+    position, yaw, velocity, yaw_rate), flat arrays (N, ...), `input_rows_of`) and the messages
+    they heard, ``received[uavs[j]]`` (N, team_n)."""
+    heard = np.empty((uavs.shape[0], received.shape[1]), np.bool_)
     for j in range(uavs.shape[0]):
         _input_row(uavs[j], *frame, data[j])
+        heard[j] = received[uavs[j]]
     observe_step(
         slots, team_n, data, heard, sent, bank_args, out_x, out_P, team_arrays, params, outs
     )

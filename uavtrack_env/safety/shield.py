@@ -51,7 +51,7 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import MISSING, dataclass, field, fields
 from typing import Literal
 
@@ -732,37 +732,42 @@ class Certificates:
                 "slack": rep.slack, "hard_violation": rep.hard_violation, "min_h": min_h,
                 "min_hard_h": min_hard_h,
             }  # fmt: skip
-        return self._summary(j, self.lows[j].tolist(), bool(self.changed[j]))
+        return self._summaries([j])[0]
 
     def summaries(self) -> list[dict]:
         """`summary` of every UAV."""
         if self.lows is None or self.rows_at is None or self._made.count(None) < len(self):
             return [self.summary(j) for j in range(len(self))]
-        lows, changed = self.lows.tolist(), self.changed.tolist()
-        return [self._summary(j, lows[j], changed[j]) for j in range(len(lows))]
+        return self._summaries(range(len(self)))
 
-    def _summary(self, j: int, lows: list[float], changed: bool) -> dict:
-        """`summary` from the arrays: UAV j's ``lows`` row and whether it was ``changed``."""
-        *family, hard = lows
-        min_h = {name: low for name, low in zip(KIND_NAMES, family, strict=True) if low == low}
-        if not changed:
-            return {
-                "active": False, "correction_norm": 0.0, "status": "nominal", "active_rows": [],
-                "gave_up": [], "slack": 0.0, "hard_violation": 0.0, "min_h": min_h,
-                "min_hard_h": hard,
-            }  # fmt: skip
+    def _summaries(self, js: Sequence[int]) -> list[dict]:
+        """`summary` of UAVs ``js`` from the arrays (``lows`` and ``rows_at`` set)."""
         _, u, outs, _, ids, _ = self._args
         kind, index, begin = self.rows_at
-        a, who = int(begin[j]), ids[j]
-        out = outs[j].tolist()
-        active_rows, _, gave_up = _changed_names(
-            out, u[j, 3], lambda r: row_name(int(kind[a + r]), int(index[a + r]), who)
-        )
-        return {
-            "active": True, "correction_norm": out[11], "status": LAYER_STATUS[int(out[4])],
-            "active_rows": active_rows, "gave_up": gave_up, "slack": out[7],
-            "hard_violation": out[8], "min_h": min_h, "min_hard_h": hard,
-        }  # fmt: skip
+        lows, changed, yaw_rates = self.lows.tolist(), self.changed.tolist(), u[:, 3].tolist()
+        begins = begin.tolist()
+        done = []
+        for j in js:
+            *family, hard = lows[j]
+            min_h = {name: low for name, low in zip(KIND_NAMES, family, strict=True) if low == low}
+            if not changed[j]:
+                done.append({
+                    "active": False, "correction_norm": 0.0, "status": "nominal",
+                    "active_rows": [], "gave_up": [], "slack": 0.0, "hard_violation": 0.0,
+                    "min_h": min_h, "min_hard_h": hard,
+                })  # fmt: skip
+                continue
+            a, who, out = begins[j], ids[j], outs[j].tolist()
+            active_rows, _, gave_up = _changed_names(
+                out, yaw_rates[j],
+                lambda r, a=a, who=who: row_name(int(kind[a + r]), int(index[a + r]), who),
+            )  # fmt: skip
+            done.append({
+                "active": True, "correction_norm": out[11], "status": LAYER_STATUS[int(out[4])],
+                "active_rows": active_rows, "gave_up": gave_up, "slack": out[7],
+                "hard_violation": out[8], "min_h": min_h, "min_hard_h": hard,
+            })  # fmt: skip
+        return done
 
 
 def _nominal_report(rows: CBFRows, ids: tuple[int, ...] | None, time_us: float) -> ShieldReport:

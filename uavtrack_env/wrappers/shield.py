@@ -198,7 +198,7 @@ class CBFShield(BaseParallelWrapper):
         raw = self._raw
         uavs = [self._ids[a] for a in infos]
         state = (raw.position, raw.yaw, raw.velocity, raw.yaw_rate)
-        heard = raw.last_received[uavs]
         observe_frame(
-            agents, raw.last_detection, state, uavs, heard, raw.position[None], list(infos.values())
-        )
+            agents, raw.last_detection, state, uavs, raw.last_received, raw.position[None],
+            list(infos.values()),
+        )  # fmt: skip

@@ -128,7 +128,7 @@ class VectorCBFShield:
             m, position = venv._sensed, venv._state[0]
             agents = [self.onboard[k][i] for k, i in zip(ks.tolist(), ids.tolist(), strict=True)]
             uavs = ks * self.n_agents + ids
-            observe_frame(agents, m.detections, venv._state, uavs, m.received[ks, ids], position)
+            observe_frame(agents, m.detections, venv._state, uavs, m.received, position)
         agents, infos, done = [], [], set(batched)
         for k in worlds:
             if k in done:
