@@ -83,6 +83,7 @@ class CBFShield(BaseParallelWrapper):
         self._raw = raw
         self._scale = env_cfg.limits.scale
         self._ids = {a: i for i, a in enumerate(raw.possible_agents)}
+        self._everyone = list(range(len(raw.possible_agents)))
         self._certified: tuple[list[str], Certificates | None] = ([], None)
         self._clips: dict[str, int] = {}
         self._episode: dict[str, dict[str, float]] = {}
@@ -113,28 +114,28 @@ class CBFShield(BaseParallelWrapper):
         u, clipped = self._raw.validate_actions(actions)
         names = list(actions)
         live = [self._ids[a] for a in names]
-        done = certify_team([self.onboard[a] for a in names], u[live]) if names else None
+        everyone = live == self._everyone  # every UAV acts, in index order: no fancy indexing
+        done = certify_team([self.onboard[a] for a in names], u if everyone else u[live])
         proposed = u / self._scale
-        certified, changed = proposed.copy(), []
-        if done is not None:
-            certified[live] = done.action / self._scale
-            changed = [i for i, c in zip(live, done.changed.tolist(), strict=True) if c]
+        if everyone:
+            certified, changed = done.action / self._scale, done.changed
+        else:
+            certified, changed = proposed.copy(), np.zeros(len(u), bool)
+            certified[live], changed[live] = done.action / self._scale, done.changed
         np.minimum(np.maximum(certified, -1.0, out=certified), 1.0, out=certified)
         # An unchanged action is passed through as given (bit-identical behaviour).
         if self.env is self._raw:  # checked above: the env's step without checking again
-            u_env, clipped_env = u.copy(), clipped.copy()
-            if changed:
-                u_env[changed], clipped_env[changed] = certified[changed] * self._scale, False
-            out = self._raw._step_checked(u_env, clipped_env)
+            u_env = np.where(changed[:, None], certified * self._scale, u)
+            out = self._raw._step_checked(u_env, clipped & ~changed)
         else:
             out = self.env.step(
-                {a: certified[self._ids[a]] if self._ids[a] in changed else act
-                 for a, act in actions.items()}
+                {a: certified[i] if changed[i] else act
+                 for a, act in actions.items() for i in (self._ids[a],)}
             )  # fmt: skip
         obs, rewards, terms, truncs, infos = out
         self._observe(infos)
         self._certified = (names, done)
-        summaries = dict(zip(names, done.summaries(), strict=True)) if done is not None else {}
+        summaries = dict(zip(names, done.summaries(), strict=True))
         was_clipped = clipped.tolist()
         for agent, info in infos.items():
             i = self._ids[agent]
