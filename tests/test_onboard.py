@@ -55,6 +55,39 @@ def test_expert_and_shield_certify_alike(preset):
     env.close()
 
 
+def test_an_agents_certify_equals_the_filters_checked_certify():
+    """`OnboardAgent.certify` (the unchecked way for a finite command) returns what
+    `SafetyFilter.certify` returns on the agent's context and rows, bit for bit; a NaN or a
+    wrong shape gets the filter's clear error."""
+    env = uavtrack_v0.parallel_env(**WORLD)
+    shield = CBFShield(env)
+    _, infos = shield.reset(seed=9)
+    rng = np.random.default_rng(4)
+    corrected = 0
+    while env.agents:
+        for agent in infos:
+            onboard = shield.onboard[agent]
+            u = rng.uniform(-1.5, 1.5, 4) * env.config.limits.scale * rng.choice([0.05, 1.0])
+            mine, rep = onboard.certify(u)
+            theirs, ref = onboard.filter.certify(u, onboard.context(), onboard.rows())
+            np.testing.assert_array_equal(mine, theirs)
+            assert (rep.status, rep.active_rows, rep.gave_up, rep.slack) == (
+                ref.status,
+                ref.active_rows,
+                ref.gave_up,
+                ref.slack,
+            )
+            corrected += rep.active
+        infos = shield.step({a: rng.uniform(-1, 1, 4) for a in env.agents})[4]
+    assert corrected > 20
+    onboard = shield.onboard[env.possible_agents[0]]
+    with pytest.raises(ValueError, match="must be finite"):
+        onboard.certify(np.array([np.nan, 0.0, 0.0, 0.0]))
+    with pytest.raises(ValueError, match="shape"):
+        onboard.certify(np.zeros(3))
+    env.close()
+
+
 def _assert_knows_layout(expert: ExpertPolicy, layout) -> None:
     for i, agent in enumerate(expert.agent_names):
         onboard, planner = expert.onboard[agent], expert.planners[agent]
