@@ -3,11 +3,14 @@
 from __future__ import annotations
 
 import importlib.util
+import os
+import subprocess
 import sys
 
 import numpy as np
+import pytest
 
-from uavtrack_env.kernels import kernels_cached, onboard_kernels
+from uavtrack_env.kernels import kernels_cached, onboard_kernels, shield_kernels
 
 
 def _module_with_a_kernel(tmp_path, monkeypatch):
@@ -34,15 +37,48 @@ def test_a_kernel_is_cached_only_once_compiled(tmp_path, monkeypatch):
 
 def test_a_shielded_step_leaves_the_onboard_kernels_cached():
     """After one shielded step and one UAV's own certification (the expert's) every kernel
-    `onboard_kernels` names is in numba's cache: the list names kernels those use, and the
-    runner's notice then stays silent."""
+    `onboard_kernels` and `shield_kernels` name is in numba's cache: the lists name kernels
+    those use, and the runner's notice then stays silent; it checks a shield's kernels only
+    where a shield wraps the env."""
+    from pettingzoo.utils.wrappers import BaseParallelWrapper
+
     from uavtrack_env import uavtrack_v0
+    from uavtrack_env.runner import _kernels_used
     from uavtrack_env.wrappers import CBFShield
 
-    env = CBFShield(uavtrack_v0.parallel_env(scenario="random", n_uavs=3, max_cycles=5))
+    raw = uavtrack_v0.parallel_env(scenario="random", n_uavs=3, max_cycles=5)
+    env = CBFShield(raw)
     env.reset(seed=0)
     env.step({a: np.ones(4) for a in env.agents})
     env.onboard["uav_0"].certify(np.full(4, 20.0))
     env.close()
-    assert len(onboard_kernels()) == 7
-    assert kernels_cached()
+    assert len(onboard_kernels()) == 5 and len(shield_kernels()) == 2
+    assert kernels_cached(onboard_kernels() + shield_kernels())
+    assert _kernels_used(raw) == onboard_kernels()
+    assert _kernels_used(BaseParallelWrapper(env)) == onboard_kernels() + shield_kernels()
+
+
+@pytest.mark.slow
+def test_an_expert_run_leaves_its_kernels_cached(tmp_path):
+    """On a machine whose numba cache is empty, an expert episode (the README's job) compiles
+    every kernel the runner's first-run notice checks for an unshielded env, so a second run
+    prints no notice (run in fresh processes with their own cache)."""
+    script = """
+import numpy as np
+from uavtrack_env import uavtrack_v0
+from uavtrack_env.expert import ExpertPolicy
+from uavtrack_env.runner import run_episode
+env = uavtrack_v0.parallel_env(scenario="A", defaults="paper")
+env.reset(seed=0)
+expert = ExpertPolicy.from_env(env, "tuned", threads=1)
+run_episode(env, expert, seed=0, steps=20, progress=True)
+expert.onboard["uav_0"].certify(np.full(4, 20.0))  # a corrected command, as any longer run has
+"""
+    env = dict(os.environ, NUMBA_CACHE_DIR=str(tmp_path), UAVTRACK_JIT="0")
+    runs = [
+        subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, text=True)
+        for _ in range(2)
+    ]
+    assert [r.returncode for r in runs] == [0, 0], runs[0].stderr[-2000:]
+    assert "compiling the onboard stack" in runs[0].stderr
+    assert "compiling the onboard stack" not in runs[1].stderr

@@ -17,12 +17,16 @@ from .safety.qp_layers import certify_changed, certify_many
 
 
 def onboard_kernels() -> list[Any]:
-    """The kernels an onboard stack's first step compiles (the shield's team certification and
-    the expert's per-UAV one)."""
-    return [
-        _bank_step, observe_pass, observe_step, observe_frame_step, certify_many, nominal_holds,
-        certify_changed,
-    ]  # fmt: skip
+    """The kernels every onboard stack compiles: its observation (the team's UKF step and
+    rows, `onboard.observe_arrays`) and its own certification (`OnboardAgent.certify`, the
+    expert's)."""
+    return [_bank_step, observe_pass, observe_step, nominal_holds, certify_changed]
+
+
+def shield_kernels() -> list[Any]:
+    """The kernels a shield compiles besides `onboard_kernels`: the observation from the env's
+    frame (`onboard.observe_frame`) and the team's certification (`onboard.certify_team`)."""
+    return [observe_frame_step, certify_many]
 
 
 def kernels_cached(kernels: Iterable[Any] | None = None) -> bool:

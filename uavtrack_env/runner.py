@@ -18,7 +18,7 @@ import numpy as np
 from tqdm import tqdm
 
 from .config import DT
-from .kernels import kernels_cached
+from .kernels import kernels_cached, onboard_kernels, shield_kernels
 from .metrics import EpisodeRecorder
 
 VIOLATIONS = ("collision", "disconnection", "occlusion")
@@ -31,6 +31,17 @@ class EpisodeResult:
 
     recorder: EpisodeRecorder
     metrics: dict[str, Any]
+
+
+def _kernels_used(env: Any) -> list[Any]:
+    """The numba kernels an episode on ``env`` compiles: the onboard stack's, and a shield's
+    if a `CBFShield` is among ``env``'s wrappers."""
+    from .wrappers import CBFShield
+
+    layer = env
+    while layer is not None and not isinstance(layer, CBFShield):
+        layer = getattr(layer, "env", None)
+    return onboard_kernels() + (shield_kernels() if layer is not None else [])
 
 
 def run_episode(
@@ -64,7 +75,7 @@ def run_episode(
     rec.record(infos)
     tally = _Tally()
     slacks = getattr(policy, "slacks", None)
-    if progress and not kernels_cached():
+    if progress and not kernels_cached(_kernels_used(env)):
         print(
             "compiling the onboard stack's numba kernels for this machine (once, about a "
             "minute; cached for later runs) ...",
