@@ -5,8 +5,10 @@ every UAV that observed: the spells of detector boxes cut by the image border, i
 messages (the reachable-set bounds of `onboard.NeighbourTable`), the car's exclusion box
 (`car_box_arrays`, the arithmetic of `onboard.car_box`) and all its CBF rows (`all_rows` and,
 under the lag model, `second_order_rows`, as `safety.cbf.RowBuilder` builds them from a
-`SafetyContext`). Per-UAV Python then only wraps slices of the outputs, lazily
-(`onboard.OnboardAgent.rows`, ``.context``, ``.belief``).
+`SafetyContext`). `observe_step` runs the UKF step (`estimation.bank._bank_step`) and then
+`observe_pass` in one call; `observe_frame_step` first builds the input rows and the heard
+messages from the env's frame arrays (the shields' route). Per-UAV Python then only wraps slices
+of the outputs, lazily (`onboard.OnboardAgent.rows`, ``.context``, ``.belief``).
 
 `TeamState` holds what those steps remember, for every slot of a team (or of K teams): the
 neighbour tables, the cut-box spells, the car box's anchor, and each world's obstacle map.
