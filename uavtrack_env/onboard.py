@@ -533,8 +533,9 @@ def certify_team(agents: Sequence[OnboardAgent], u: np.ndarray) -> Certificates:
     read (`Certificates.report`)."""
     out = agents[0]._seen[0]
     shield = agents[0].filter
-    if all(agent._seen[0] is out for agent in agents):  # one pass: its arrays as they are
-        js = [agent._seen[1] for agent in agents]
+    seen = [agent._seen for agent in agents]
+    js = [j for pass_out, j in seen if pass_out is out]
+    if len(js) == len(agents):  # one pass: its arrays as they are
         if js == list(range(len(out.data))):  # all of the pass, in its order
             data, lows, begin, end = out.data, out.lows, out.start[:-1], out.start[1:]
             known = out.belief_ints[:, 0].tolist()
@@ -650,9 +651,12 @@ def observe_frame(
 def _one_bank(agents: Sequence[OnboardAgent]) -> bool:
     """The agents are of one team, their trackers of one bank, slot for slot (`observe_step`)."""
     team, bank = agents[0].team, agents[0].tracker.bank
-    return bank is not None and all(
-        a.team is team and a.tracker.bank is bank and a.tracker.slot == a.slot for a in agents
-    )
+    if bank is None:
+        return False
+    for a in agents:
+        if a.team is not team or a.tracker.bank is not bank or a.tracker.slot != a.slot:
+            return False
+    return True
 
 
 def _fused_step(
