@@ -531,9 +531,8 @@ def certify_team(agents: Sequence[OnboardAgent], u: np.ndarray) -> Certificates:
     """`OnboardAgent.certify_trusted` of ``u[j]`` (m, 4) for each of m agents with one
     configuration (`SafetyFilter.certify_many`: one compiled call); the reports are made when
     read (`Certificates.report`)."""
-    out = agents[0]._seen[0]
-    shield = agents[0].filter
     seen = [agent._seen for agent in agents]
+    out, shield = seen[0][0], agents[0].filter
     js = [j for pass_out, j in seen if pass_out is out]
     if len(js) == len(agents):  # one pass: its arrays as they are
         if js == list(range(len(out.data))):  # all of the pass, in its order
@@ -645,7 +644,7 @@ def observe_frame(
         return
     data = np.empty((len(uavs), len(INPUT_COLUMNS)))
     frame = _flat_frame(det, state)
-    _fused_step(agents, data, None, sent, infos, observe_frame_step, uavs, frame, heard)
+    _fused_step(agents, data, heard, sent, infos, observe_frame_step, uavs, frame)
 
 
 def _one_bank(agents: Sequence[OnboardAgent]) -> bool:
@@ -662,21 +661,19 @@ def _one_bank(agents: Sequence[OnboardAgent]) -> bool:
 def _fused_step(
     agents: Sequence[OnboardAgent],
     data: np.ndarray,
-    heard: np.ndarray | None,
+    heard: np.ndarray,
     sent: np.ndarray,
     infos: Sequence[dict] | None,
     kernel: Any,
     *lead: Any,
 ) -> None:
-    """``kernel(*lead, slots, team_n, data, [heard,] sent, ...)``: `observe_step`'s arguments
-    for `_one_bank` agents (``heard`` None: the kernel takes none); the bank and the agents
-    then take its outputs."""
+    """``kernel(*lead, slots, team_n, data, heard, sent, ...)``: `observe_step`'s arguments for
+    `_one_bank` agents; the bank and the agents then take its outputs."""
     team, bank = agents[0].team, agents[0].tracker.bank
     slots, outputs = bank.prepare([a.slot for a in agents], data)
     out = PassOutput.allocate(data, team.n - 1, team.obs_c.shape[1])
-    messages = (sent,) if heard is None else (heard, sent)
     kernel(
-        *lead, slots, team.n, data, *messages, bank.kernel_args, *outputs, team.arrays(),
+        *lead, slots, team.n, data, heard, sent, bank.kernel_args, *outputs, team.arrays(),
         agents[0]._pass_params, out[1:],
     )  # fmt: skip
     bank.estimates.set(slots.tolist(), outputs, bank._ready)

@@ -318,13 +318,13 @@ def observe_step(
 
 @numba.njit(cache=True)
 def observe_frame_step(
-    uavs, frame, received, slots, team_n, data, sent, bank_args, out_x, out_P, team_arrays,
+    uavs, frame, slots, team_n, data, received, sent, bank_args, out_x, out_P, team_arrays,
     params, outs,
 ):  # fmt: skip  # pragma: no cover (compiled)
-    """`observe_step` of the UAVs ``uavs`` of a frame: their input rows ``data`` (which it
-    fills; row j is UAV ``uavs[j]``'s of ``frame`` = (detected, u, v, depth, psi, truncated,
-    position, yaw, velocity, yaw_rate), flat arrays (N, ...), `input_rows_of`) and the messages
-    they heard, ``received[uavs[j]]`` (N, team_n)."""
+    """`observe_step` of the UAVs ``uavs`` of a frame, with `observe_step`'s arguments but for
+    ``data``, which it fills (row j is UAV ``uavs[j]``'s of ``frame`` = (detected, u, v, depth,
+    psi, truncated, position, yaw, velocity, yaw_rate), flat arrays (N, ...), `input_rows_of`),
+    and ``received`` (N, team_n) in place of ``heard``: UAV j heard ``received[uavs[j]]``."""
     heard = np.empty((uavs.shape[0], received.shape[1]), np.bool_)
     for j in range(uavs.shape[0]):
         _input_row(uavs[j], *frame, data[j])
