@@ -14,7 +14,7 @@ import pybullet as p
 import pytest
 
 from uavtrack_env import uavtrack_v0
-from uavtrack_env.env import NOTHING_NEAR
+from uavtrack_env.infos import NOTHING_NEAR
 from uavtrack_env.wrappers import CBFShield
 
 

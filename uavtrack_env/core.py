@@ -18,7 +18,6 @@ import numpy as np
 from . import core_kernels
 from .broadphase import CONTACT_MARGIN, Bodies
 from .config import DT, EnvConfig
-from .dynamics import integrate
 from .rewards import FEATURE_ERROR_CAP
 from .scenarios import Layout
 from .sensors import Detections, Detector, receive_batch
@@ -150,8 +149,10 @@ def simulate(
 
     ``state`` = (position (K, n, 3), yaw (K, n), velocity (K, n, 3), yaw rate (K, n));
     returns the new state and the applied u."""
-    u = np.where(alive[..., None], u, 0.0)
-    position, yaw, velocity, yaw_rate = integrate(*state, u, cfg.dynamics, DT)
+    dyn = cfg.dynamics
+    position, yaw, velocity, yaw_rate, u = core_kernels.integrate(
+        *state, alive, u, dyn.model == "lag", dyn.tau, dyn.a_max, min(1.0, DT / dyn.yaw_tau), DT
+    )
     for k, (world, target) in enumerate(zip(worlds, targets, strict=True)):
         target.step(DT)
         world.set_poses(position[k], yaw[k], alive[k], target.center(), target.heading, defer=True)

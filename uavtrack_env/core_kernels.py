@@ -27,6 +27,61 @@ def _norm3(x: float, y: float, z: float) -> float:  # pragma: no cover (compiled
 
 
 @numba.njit(cache=True)
+def integrate(
+    position, yaw, velocity, yaw_rate, alive, u, lag, tau, a_max, yaw_gain, dt
+):  # pragma: no cover (compiled)
+    """`dynamics.integrate` of K worlds (position, velocity (K, n, 3); yaw, yaw rate, alive
+    (K, n); u (K, n, 4), zero for finished UAVs): the new state and the applied u. ``lag``
+    selects the lag model, ``yaw_gain`` = min(1, dt / yaw_tau)."""
+    K, n = yaw.shape
+    new_p, new_v = np.empty((K, n, 3)), np.empty((K, n, 3))
+    new_yaw, new_w, applied = np.empty((K, n)), np.empty((K, n)), np.zeros((K, n, 4))
+    for k in range(K):
+        for i in range(n):
+            if alive[k, i]:
+                for c in range(4):
+                    applied[k, i, c] = u[k, i, c]
+            X, Y, Z, w_cmd = applied[k, i, 0], applied[k, i, 1], applied[k, i, 2], -applied[k, i, 3]
+            c, s = math.cos(yaw[k, i]), math.sin(yaw[k, i])
+            vx, vy, vz = s * X + c * Z, -c * X + s * Z, -Y  # eq. (3): camera to global frame
+            w = w_cmd
+            if lag:
+                ax = (vx - velocity[k, i, 0]) / tau
+                ay = (vy - velocity[k, i, 1]) / tau
+                az = (vz - velocity[k, i, 2]) / tau
+                scale = min(1.0, a_max / max(_norm3(ax, ay, az), 1e-12))
+                vx = velocity[k, i, 0] + ax * scale * dt
+                vy = velocity[k, i, 1] + ay * scale * dt
+                vz = velocity[k, i, 2] + az * scale * dt
+                w = yaw_rate[k, i] + (w_cmd - yaw_rate[k, i]) * yaw_gain
+            new_v[k, i, 0], new_v[k, i, 1], new_v[k, i, 2], new_w[k, i] = vx, vy, vz, w
+            new_p[k, i, 0] = position[k, i, 0] + vx * dt
+            new_p[k, i, 1] = position[k, i, 1] + vy * dt
+            new_p[k, i, 2] = position[k, i, 2] + vz * dt
+            new_yaw[k, i] = _wrap(yaw[k, i] + w * dt)
+    return new_p, new_yaw, new_v, new_w, applied
+
+
+@numba.njit(cache=True)
+def received(dist, alive, draws, drop_prob, r_c):  # pragma: no cover (compiled)
+    """`sensors.receive_batch`'s mask of K worlds: UAV i hears UAV j (i != j, both alive) when
+    they are within ``r_c`` and the message's draw is not below ``drop_prob``."""
+    K, n = alive.shape
+    out = np.zeros((K, n, n), np.bool_)
+    for k in range(K):
+        for i in range(n):
+            for j in range(n):
+                out[k, i, j] = (
+                    i != j
+                    and dist[k, i, j] <= r_c
+                    and not draws[k, i, j] < drop_prob
+                    and alive[k, i]
+                    and alive[k, j]
+                )
+    return out
+
+
+@numba.njit(cache=True)
 def detector_frame(
     local, centers, target_yaws, headings, positions, yaws, camera, n_samples
 ):  # pragma: no cover (compiled)

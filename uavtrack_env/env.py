@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, ClassVar
@@ -16,6 +15,7 @@ from . import core
 from . import render as rendering
 from .config import EnvConfig
 from .core import NEIGHBOUR_FIELDS, OBSTACLE_FIELDS, Measurements, Score
+from .infos import PixelFrame, agent_infos
 from .scenarios import Layout, make_layout
 from .sensors import Detections, Detector, UAVSnapshot
 from .target import TargetMotion
@@ -111,16 +111,6 @@ OBSTACLE_FIELD = ObsField(
 (3, m), mask (1)."""
 
 
-NOTHING_NEAR = 1.0e4
-"""``info["truth"]["nearest_uav_distance"]`` with no other live UAV and
-``"nearest_obstacle_clearance"`` without obstacles (m): finite, so every info value is."""
-
-
-def _finite(distance: float) -> float:
-    """A nearest distance, `NOTHING_NEAR` when there is nothing (inf)."""
-    return float(distance) if math.isfinite(distance) else NOTHING_NEAR
-
-
 class UAVTrackEnv(ParallelEnv):
     """Cooperative visual tracking of a car by n UAVs in a cluttered PyBullet world.
 
@@ -204,7 +194,6 @@ class UAVTrackEnv(ParallelEnv):
         )
         self.world = World(gui=self.render_mode == "human")
         self.detector = Detector(cfg.camera, cfg.detector)
-        self._image_size = np.array([cfg.camera.width, cfg.camera.height], float)
         self.np_random: np.random.Generator | None = None
         self.layout: Layout | None = None
         self.last_detection: Detections | None = None
@@ -272,6 +261,7 @@ class UAVTrackEnv(ParallelEnv):
         self.alive = np.ones(n, bool)
         self.target = TargetMotion(layout.target_program, *layout.target_start)
         self.references = layout.references
+        self._pixels = PixelFrame.of(cfg.camera, layout.references)
         self.agents = self.possible_agents[:]
         self.num_cycles = 0
         self._clip_count = np.zeros(n, int)
@@ -321,15 +311,19 @@ class UAVTrackEnv(ParallelEnv):
         agents; ValueError for a non-dict, wrong shapes or non-finite values.
         """
         self._check_can_act(actions)
-        return self._scaled(
-            {agent: self.check_action(agent, act) for agent, act in actions.items()}
-        )
+        try:  # every action at once; the first bad one is named below
+            stacked = np.array(list(actions.values()), dtype=np.float64)
+        except (TypeError, ValueError):
+            stacked = None
+        if stacked is None or stacked.shape != (len(actions), 4) or not np.isfinite(stacked).all():
+            stacked = [self.check_action(agent, act) for agent, act in actions.items()]
+        return self._scaled([self._index[agent] for agent in actions], stacked)
 
-    def _scaled(self, actions: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
-        """`validate_actions`' (u, clipped) of checked float64 (4,) actions of the live agents."""
+    def _scaled(self, rows: list[int], actions: Any) -> tuple[np.ndarray, np.ndarray]:
+        """`validate_actions`' (u, clipped) of checked float64 actions (len(rows), 4) of the
+        live agents in ``rows``."""
         a = np.zeros((self.config.n_uavs, 4))
-        for agent, act in actions.items():
-            a[self._index[agent]] = act
+        a[rows] = actions
         clipped = np.any(np.abs(a) > 1.0, axis=1)
         return np.minimum(np.maximum(a, -1.0), 1.0) * self._scale, clipped
 
@@ -421,88 +415,13 @@ class UAVTrackEnv(ParallelEnv):
         self, m: Measurements, score: Score, u: np.ndarray, clipped: np.ndarray
     ) -> dict[str, dict]:
         """Each live agent's info dict: cost, violations, reward terms, measurement, truth."""
-        truths = self._truths(m)
         rows = [self._index[a] for a in self.agents]
         state = (self.position, self.yaw, self.velocity, self.yaw_rate)
-        sensed = sensor_infos(rows, self.possible_agents, m.detections, m.received, state)
-        return {
-            a: self._agent_info(i, m, score, u, clipped, truths, sense)
-            for a, i, sense in zip(self.agents, rows, sensed, strict=True)
-        }
-
-    def _agent_info(
-        self,
-        i: int,
-        m: Measurements,
-        score: Score,
-        u: np.ndarray,
-        clipped: np.ndarray,
-        truths: dict[str, Any],
-        sensed: dict[str, dict],
-    ) -> dict:
-        violations = {
-            "collision": bool(score.collided[i]),
-            "disconnection": score.disconnected,
-            "occlusion": bool(score.occluded[i]),
-        }
-        costs = {k: float(v) for k, v in violations.items()}
-        info = {
-            "cost": costs["collision"] + costs["disconnection"] + costs["occlusion"],
-            "costs": costs,
-            "violations": violations,
-            "collision_with": {
-                "uav": bool(score.uav_too_close[i]),
-                **{k: bool(v[i]) for k, v in m.contacts.items()},
-            },
-            "reward_tracking": -float(score.tracking[i]),
-            "reward_effort": -float(score.effort[i]),
-            "action_clipped": bool(clipped[i]),
-            "n_clipped_actions": int(self._clip_count[i]),
-            **sensed,
-            "reference": self.references[i].copy(),
-            "truth": self._truth(i, m, truths),
-        }
-        info["own"]["applied_u"] = u[i].copy()
-        return info
-
-    def _truths(self, m: Measurements) -> dict[str, Any]:
-        """The parts of every UAV's ground truth computed for the whole team at once."""
-        cam, det = self.config.camera, m.detections
-        s, ref = det.true_features, self.references
-        ref_px = np.column_stack([cam.fx * ref[:, 0] + cam.cu, cam.fy * ref[:, 1] + cam.cv])
-        center_px = np.column_stack([cam.fx * s[:, 0] + cam.cu, cam.fy * s[:, 1] + cam.cv])
-        theta = m.occlusion_angles
-        return {
-            # Capped at the image size: a car behind the camera projects arbitrarily far.
-            "pixel_error": np.clip(det.box_center - ref_px, -self._image_size, self._image_size),
-            "center_pixel_error": center_px - ref_px,
-            "min_occlusion_angle": np.where(m.occlusion_candidates, theta, np.pi).min(
-                axis=1, initial=np.pi
-            ),
-            "target": (self.target.center(), self.target.velocity(), self.target.acceleration()),
-        }
-
-    def _truth(self, i: int, m: Measurements, truths: dict[str, Any]) -> dict:
-        """Ground truth for UAV i: true features and errors, the car's motion, clearances."""
-        det = m.detections
-        s, ref = det.true_features[i], self.references[i]
-        position, velocity, acceleration = truths["target"]
-        return {
-            "features": s.copy(),
-            "pixel_error": truths["pixel_error"][i],
-            "center_pixel_error": truths["center_pixel_error"][i],
-            "depth_error": float(1.0 / s[2] - 1.0 / ref[2]) if det.in_front[i] else None,
-            "target_position": position.copy(),
-            "target_velocity": velocity.copy(),
-            "target_acceleration": acceleration.copy(),
-            "nearest_uav_distance": _finite(m.nearest_uav[i]),
-            "nearest_obstacle_clearance": _finite(m.nearest_obstacle[i]),
-            "target_clearance": float(m.target_clearance[i]),
-            "occlusion_angles": m.occlusion_angles[i].copy(),
-            "occlusion_candidates": m.occlusion_candidates[i].copy(),
-            "min_occlusion_angle": float(truths["min_occlusion_angle"][i]),
-            "blocked_fraction": float(det.blocked_fraction[i]),
-        }
+        infos = agent_infos(
+            rows, self.possible_agents, m, score, u, clipped, self._clip_count, self.references,
+            self._pixels, self.target, state,
+        )  # fmt: skip
+        return dict(zip(self.agents, infos, strict=True))
 
     # ------------------------------------------------------------ episode end
     def _episode_end(self, collided: np.ndarray):
@@ -577,48 +496,3 @@ class UAVTrackEnv(ParallelEnv):
 
     def __reduce_ex__(self, protocol):
         return self.world.__reduce_ex__(protocol)  # refuses: the world owns a live client
-
-
-def sensor_infos(
-    rows: list[int],
-    names: list[str],
-    det: Detections,
-    received: np.ndarray,
-    state: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
-) -> list[dict[str, dict]]:
-    """What the sensors and radio of each UAV i in ``rows`` report, the part of its info an
-    onboard stack reads: ``measurement`` (the detector's report; u, v, depth, psi None when not
-    detected), ``own`` (position, yaw, velocity, yaw_rate from ``state``) and ``neighbours``
-    (name -> position of each team-mate heard, ``received[i]``)."""
-    position, yaw, velocity, yaw_rate = state
-    detected, visible = det.detected.tolist(), det.visible_fraction.tolist()
-    u, v, depth, psi = det.u.tolist(), det.v.tolist(), det.depth.tolist(), det.psi.tolist()
-    cut, heard = det.truncated.tolist(), received.tolist()
-    yaws, rates = yaw.tolist(), yaw_rate.tolist()
-    out = []
-    for i in rows:
-        ok = detected[i]
-        out.append(
-            {
-                "measurement": {
-                    "detected": ok,
-                    "u": u[i] if ok else None,
-                    "v": v[i] if ok else None,
-                    "depth": depth[i] if ok else None,
-                    "psi": psi[i] if ok else None,
-                    "visible_fraction": visible[i],
-                    "truncated_u": ok and cut[i][0],
-                    "truncated_v": ok and cut[i][1],
-                },
-                "own": {
-                    "position": position[i].copy(),
-                    "yaw": yaws[i],
-                    "velocity": velocity[i].copy(),
-                    "yaw_rate": rates[i],
-                },
-                "neighbours": {
-                    names[j]: position[j].copy() for j, got in enumerate(heard[i]) if got
-                },
-            }
-        )
-    return out

@@ -229,7 +229,7 @@ class Detector:
             reach, rays = np.zeros((K, n, s), bool), np.ones((K, n, s), bool)
         else:
             reach, rays = known == broadphase.REACHES, known == broadphase.UNKNOWN
-        for k in np.flatnonzero(rays.any(axis=(1, 2))):
+        for k in np.flatnonzero(rays.reshape(K, n * s).any(axis=1)):
             i, j = np.nonzero(rays[k])  # this world's rays that go to PyBullet
             reach[k, i, j] = worlds[k].rays_reach_target(positions[k, i], samples[k, j])
         return reach.reshape(K * n, s)
@@ -253,7 +253,4 @@ def receive_batch(
     draws = np.empty((len(rngs), n, n))
     for k, rng in enumerate(rngs):
         draws[k] = rng.random((n, n))
-    lost = draws < cfg.drop_prob
-    received = (dist <= cfg.r_c) & ~lost & alive[:, :, None] & alive[:, None, :]
-    received.reshape(len(rngs), n * n)[:, :: n + 1] = False  # the diagonals
-    return received
+    return core_kernels.received(dist, alive, draws, cfg.drop_prob, cfg.r_c)

@@ -47,7 +47,8 @@ from gymnasium.vector import AutoresetMode
 
 from . import core
 from .core import Obstacles, Score
-from .env import UAVTrackEnv, sensor_infos
+from .env import UAVTrackEnv
+from .infos import sensor_infos
 
 VIOLATIONS = ("collision", "disconnection", "occlusion")
 
