@@ -146,6 +146,21 @@ def _known_rays(p, alive, car, samples, R, car_radius, box_c, box_h, r, margin=R
 
 
 @numba.njit(cache=True)
+def answers(known):  # pragma: no cover (compiled)
+    """`known_rays`' answers (K, n, s) as (reaches, unknown) bool arrays and the worlds with a
+    ray to cast (int64)."""
+    reaches, unknown = known == REACHES, known == UNKNOWN
+    K = known.shape[0]
+    worlds = np.empty(K, np.int64)
+    count = 0
+    for k in range(K):
+        if unknown[k].any():
+            worlds[count] = k
+            count += 1
+    return reaches, unknown, worlds[:count]
+
+
+@numba.njit(cache=True)
 def _point_segment2(x, a, d0, d1, d2, length2):
     """Squared distance from point x to segment a -> a + d (|d|^2 = length2)."""
     r0, r1, r2 = x[0] - a[0], x[1] - a[1], x[2] - a[2]

@@ -213,23 +213,46 @@ def sense(
     )
 
 
+@dataclass(frozen=True)
+class Constants:
+    """An env config's numbers as the kernels take them (built once per env)."""
+
+    score_settings: np.ndarray
+    """lost penalty, R_s, R_c, collision penalty, tolerated blocked share, exp shape (0/1)."""
+    q: np.ndarray
+    """Feature weights of eq. (18) (Table III)."""
+    r: np.ndarray
+    """Input weights of eq. (18) (Table III)."""
+    camera: np.ndarray
+    """[fx, fy, cu, cv]."""
+
+    @classmethod
+    def of(cls, cfg: EnvConfig) -> Constants:
+        rc, cam = cfg.reward, cfg.camera
+        settings = np.array(
+            [
+                rc.lost_penalty, cfg.violations.r_s, cfg.comms.r_c, rc.collision_penalty,
+                1.0 - cfg.detector.min_visible_fraction, float(rc.shape == "exp"),
+            ]
+        )  # fmt: skip
+        return cls(
+            settings,
+            np.asarray(rc.q, float),
+            np.asarray(rc.r, float),
+            np.array([cam.fx, cam.fy, cam.cu, cam.cv]),
+        )
+
+
 def score(
-    cfg: EnvConfig, m: Measurements, references: np.ndarray, alive: np.ndarray, u: np.ndarray
+    const: Constants, m: Measurements, references: np.ndarray, alive: np.ndarray, u: np.ndarray
 ) -> Score:
     """Reward terms (from the true features and u (K, n, 4)) and the three violations: the
     terms of `rewards` (`tracking_term`, `effort_term`, `reward`, `connected`), in one kernel."""
-    det, hits, rc = m.detections, m.contacts, cfg.reward
-    settings = np.array(
-        [
-            rc.lost_penalty, cfg.violations.r_s, cfg.comms.r_c, rc.collision_penalty,
-            1.0 - cfg.detector.min_visible_fraction, float(rc.shape == "exp"),
-        ]
-    )  # fmt: skip
+    det, hits = m.detections, m.contacts
     values, flags, disconnected = core_kernels.score(
         det.true_features, references, det.in_front, det.detected, u, hits["ground"],
         hits["obstacle"], hits["target"], m.nearest_uav, alive, m.distances,
-        det.blocked_fraction, np.asarray(rc.q, float), np.asarray(rc.r, float),
-        FEATURE_ERROR_CAP, settings,
+        det.blocked_fraction, const.q, const.r, FEATURE_ERROR_CAP, const.score_settings,
     )  # fmt: skip
     return Score(
         tracking=values[0],
@@ -244,6 +267,7 @@ def score(
 
 def observation(
     cfg: EnvConfig,
+    const: Constants,
     m: Measurements,
     state: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
     references: np.ndarray,
@@ -253,11 +277,11 @@ def observation(
     """Every UAV's observation (K, n, n_obs) float32, clipped to ``bounds`` (rows of finished
     UAVs included)."""
     position, yaw, velocity, yaw_rate = state
-    det, cam = m.detections, cfg.camera
+    det = m.detections
     return core_kernels.observation(
         det.u, det.v, det.depth, det.psi, det.visible_fraction, det.detected, position, yaw,
         velocity, yaw_rate, references, m.received, m.distances, m.obstacle_clearance,
         obstacles.centers, obstacles.half_extents, obstacles.present,
-        np.array([cam.fx, cam.fy, cam.cu, cam.cv]), cfg.n_neighbours, cfg.n_obstacles_obs,
+        const.camera, cfg.n_neighbours, cfg.n_obstacles_obs,
         *bounds,
     )  # fmt: skip

@@ -177,7 +177,9 @@ class UAVTrackEnv(ParallelEnv):
         self.possible_agents = [f"uav_{i}" for i in range(cfg.n_uavs)]
         self.agents: list[str] = []
         self._index = {a: i for i, a in enumerate(self.possible_agents)}
+        self._every_row = list(range(cfg.n_uavs))
         self._scale = cfg.limits.scale
+        self._constants = core.Constants.of(cfg)
         self.n_obs = (
             sum(f.size for f in OWN_FIELDS)
             + cfg.n_neighbours * NEIGHBOUR_FIELDS
@@ -322,9 +324,12 @@ class UAVTrackEnv(ParallelEnv):
     def _scaled(self, rows: list[int], actions: Any) -> tuple[np.ndarray, np.ndarray]:
         """`validate_actions`' (u, clipped) of checked float64 actions (len(rows), 4) of the
         live agents in ``rows``."""
-        a = np.zeros((self.config.n_uavs, 4))
-        a[rows] = actions
-        clipped = np.any(np.abs(a) > 1.0, axis=1)
+        if rows == self._every_row and isinstance(actions, np.ndarray):
+            a = actions  # a new array, in the UAVs' order
+        else:
+            a = np.zeros((self.config.n_uavs, 4))
+            a[rows] = actions
+        clipped = (np.abs(a) > 1.0).any(axis=1)
         return np.minimum(np.maximum(a, -1.0), 1.0) * self._scale, clipped
 
     @staticmethod
@@ -393,7 +398,7 @@ class UAVTrackEnv(ParallelEnv):
     def _score(self, m: Measurements, u: np.ndarray) -> Score:
         """Reward terms (from the true features and u) and the three violations (a batch of one
         world)."""
-        return core.score(self.config, m, self.references[None], self.alive[None], u[None])
+        return core.score(self._constants, m, self.references[None], self.alive[None], u[None])
 
     # ---------------------------------------------------------------- observe
     def _observe(self, m: Measurements) -> dict[str, np.ndarray]:
@@ -407,7 +412,7 @@ class UAVTrackEnv(ParallelEnv):
         state = (self.position[None], self.yaw[None], self.velocity[None], self.yaw_rate[None])
         bounds = (self._obs_low, self._obs_high)
         return core.observation(
-            self.config, m, state, self.references[None], self._obstacles, bounds
+            self.config, self._constants, m, state, self.references[None], self._obstacles, bounds
         )[0]
 
     # ------------------------------------------------------------------ infos
@@ -434,15 +439,17 @@ class UAVTrackEnv(ParallelEnv):
     def _end_arrays(self, collided: np.ndarray) -> tuple[np.ndarray, bool]:
         """Which UAVs this step terminates (n,) and whether it truncates; updates ``alive`` and
         ``agents`` and parks the UAVs that left."""
-        cfg = self.config
-        if cfg.terminate_on_collision == "never":
-            collided = np.zeros_like(collided)  # charged as cost only
-        elif cfg.terminate_on_collision == "all" and collided.any():
+        mode, hit = self.config.terminate_on_collision, bool(collided.any())
+        if mode == "never":
+            collided, hit = np.zeros_like(collided), False  # charged as cost only
+        elif mode == "all" and hit:
             collided = self.alive.copy()
         truncate = self.num_cycles >= self.max_cycles
-        self.alive &= ~collided
-        self.agents = [] if truncate else [a for a in self.agents if self.alive[self._index[a]]]
-        if self.agents and collided.any():  # park the UAVs that just left
+        if hit:
+            self.alive &= ~collided
+        alive = self.alive.tolist()
+        self.agents = [] if truncate else [a for a in self.agents if alive[self._index[a]]]
+        if self.agents and hit:  # park the UAVs that just left
             self.world.set_poses(
                 self.position, self.yaw, self.alive, self.target.center(), self.target.heading
             )

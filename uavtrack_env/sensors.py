@@ -226,10 +226,11 @@ class Detector:
         K, n = positions.shape[:2]
         s = self._n_samples
         if known is None:
-            reach, rays = np.zeros((K, n, s), bool), np.ones((K, n, s), bool)
+            reach, rays, in_doubt = np.zeros((K, n, s), bool), np.ones((K, n, s), bool), range(K)
         else:
-            reach, rays = known == broadphase.REACHES, known == broadphase.UNKNOWN
-        for k in np.flatnonzero(rays.reshape(K, n * s).any(axis=1)):
+            reach, rays, worlds_in_doubt = broadphase.answers(known)
+            in_doubt = worlds_in_doubt.tolist()
+        for k in in_doubt:
             i, j = np.nonzero(rays[k])  # this world's rays that go to PyBullet
             reach[k, i, j] = worlds[k].rays_reach_target(positions[k, i], samples[k, j])
         return reach.reshape(K * n, s)

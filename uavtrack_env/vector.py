@@ -70,6 +70,7 @@ class UAVTrackVectorEnv:
         self.envs = [UAVTrackEnv(**config) for _ in range(self.num_envs)]
         first = self.envs[0]
         self.config = first.config
+        self._constants = first._constants
         self.possible_agents = list(first.possible_agents)
         self.n_agents = len(self.possible_agents)
         self.single_observation_space = first.observation_space(self.possible_agents[0])
@@ -192,8 +193,10 @@ class UAVTrackVectorEnv:
             position, yaw, self._alive,
         )  # fmt: skip
         self._sensed = m
-        score = core.score(cfg, m, self._references, self._alive, u)
-        obs = core.observation(cfg, m, self._state, self._references, self._obstacles, self._bounds)
+        score = core.score(self._constants, m, self._references, self._alive, u)
+        obs = core.observation(
+            cfg, self._constants, m, self._state, self._references, self._obstacles, self._bounds
+        )
         obs *= active[..., None]
         infos = self._info_arrays(score, clipped, active)
         terminated, truncate = self._end(score.collided)
