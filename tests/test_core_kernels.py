@@ -82,3 +82,14 @@ def test_pixel_truths_equal_the_numpy_formulation():
     want = np.where(candidates, theta, np.pi).min(axis=1, initial=np.pi)
     np.testing.assert_array_equal(least, want)
     assert least[0] == np.pi and np.isnan(least[2]) and np.isnan(pixel[1, 0])
+
+
+def test_scaled_actions_equal_numpy_clip_and_scale():
+    rng = np.random.default_rng(3)
+    a = rng.uniform(-2, 2, (50, 4))
+    a[0] = [1.0, -1.0, 0.0, -0.0]  # on the bounds: not clipped
+    scale = np.array([10.0, 10.0, 10.0, 0.6])
+    u, clipped = core_kernels.scaled_actions(a, scale)
+    np.testing.assert_array_equal(u, np.clip(a, -1.0, 1.0) * scale)
+    np.testing.assert_array_equal(clipped, np.any(np.abs(a) > 1.0, axis=1))
+    assert not clipped[0] and clipped.any()

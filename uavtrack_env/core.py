@@ -191,7 +191,7 @@ def sense(
         list(worlds), position, yaw, centers, headings, headings, rngs, bodies=bodies
     )
     received = receive_batch(pair, alive, cfg.comms, list(rngs))
-    hits = {key: np.zeros((K, n), bool) for key in ("ground", "obstacle", "target")}
+    hits = dict(zip(("ground", "obstacle", "target"), np.zeros((3, K, n), bool), strict=True))
     for k, world in enumerate(worlds):
         if bodies is not None and not touch[k]:
             continue  # no UAV near anything: PyBullet would report no contact

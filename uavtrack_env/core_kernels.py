@@ -63,6 +63,21 @@ def integrate(
 
 
 @numba.njit(cache=True)
+def scaled_actions(a, scale):  # pragma: no cover (compiled)
+    """Finite normalised actions (rows, 4) clipped to [-1, 1] and scaled to SI units by Table II
+    (``scale``, (4,)); and (rows,) bool: the row left [-1, 1]."""
+    rows = a.shape[0]
+    u, clipped = np.empty((rows, 4)), np.zeros(rows, np.bool_)
+    for i in range(rows):
+        for c in range(4):
+            x = a[i, c]
+            if abs(x) > 1.0:
+                clipped[i] = True
+            u[i, c] = min(max(x, -1.0), 1.0) * scale[c]
+    return u, clipped
+
+
+@numba.njit(cache=True)
 def received(dist, alive, draws, drop_prob, r_c):  # pragma: no cover (compiled)
     """`sensors.receive_batch`'s mask of K worlds: UAV i hears UAV j (i != j, both alive) when
     they are within ``r_c`` and the message's draw is not below ``drop_prob``."""

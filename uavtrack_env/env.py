@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, ClassVar
@@ -11,7 +12,7 @@ import numpy as np
 from gymnasium.utils import seeding
 from pettingzoo import ParallelEnv
 
-from . import core
+from . import core, core_kernels
 from . import render as rendering
 from .config import EnvConfig
 from .core import NEIGHBOUR_FIELDS, OBSTACLE_FIELDS, Measurements, Score
@@ -317,7 +318,12 @@ class UAVTrackEnv(ParallelEnv):
             stacked = np.array(list(actions.values()), dtype=np.float64)
         except (TypeError, ValueError):
             stacked = None
-        if stacked is None or stacked.shape != (len(actions), 4) or not np.isfinite(stacked).all():
+        # A sum is finite only if every term is (an overflow just takes the slow path).
+        if (
+            stacked is None
+            or stacked.shape != (len(actions), 4)
+            or not math.isfinite(stacked.sum())
+        ):
             stacked = [self.check_action(agent, act) for agent, act in actions.items()]
         return self._scaled([self._index[agent] for agent in actions], stacked)
 
@@ -329,8 +335,7 @@ class UAVTrackEnv(ParallelEnv):
         else:
             a = np.zeros((self.config.n_uavs, 4))
             a[rows] = actions
-        clipped = (np.abs(a) > 1.0).any(axis=1)
-        return np.minimum(np.maximum(a, -1.0), 1.0) * self._scale, clipped
+        return core_kernels.scaled_actions(a, self._scale)
 
     @staticmethod
     def check_action(agent: str, act: Any) -> np.ndarray:

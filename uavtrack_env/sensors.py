@@ -54,13 +54,11 @@ class Detections:
 
     def world(self, k: int) -> Detections:
         """World k of a batch (`Detector.detect_batch`, arrays (K, n, ...)): views (n, ...)."""
-        return Detections(*[getattr(self, name)[k] for name in _DETECTION_FIELDS])
-
-    def batch(self, K: int, n: int) -> Detections:
-        """These (K n, ...) arrays as a batch of K worlds (K, n, ...) (views)."""
         return Detections(
-            *[(a := getattr(self, name)).reshape(K, n, *a.shape[1:]) for name in _DETECTION_FIELDS]
-        )
+            self.detected[k], self.u[k], self.v[k], self.depth[k], self.psi[k],
+            self.visible_fraction[k], self.blocked_fraction[k], self.true_features[k],
+            self.in_front[k], self.box_center[k], self.truncated[k],
+        )  # fmt: skip
 
 
 _DETECTION_FIELDS = tuple(f.name for f in fields(Detections))
@@ -199,20 +197,20 @@ class Detector:
         values, detected = core_kernels.detector_measure(
             rows, flags[1], in_image, reach, noise, dropout, self._settings
         )
-        det = Detections(
-            detected=detected,
+        values = values.reshape(len(values), K, n)
+        return Detections(
+            detected=detected.reshape(K, n),
             u=values[0],
             v=values[1],
             depth=values[2],
             psi=values[3],
             visible_fraction=values[4],
             blocked_fraction=values[5],
-            truncated=truncated,
-            true_features=true,
-            in_front=flags[0],
-            box_center=box_center,
+            truncated=truncated.reshape(K, n, 2),
+            true_features=true.reshape(K, n, 4),
+            in_front=flags[0].reshape(K, n),
+            box_center=box_center.reshape(K, n, 2),
         )
-        return det.batch(K, n)
 
     def _reach(
         self,

@@ -45,7 +45,7 @@ import gymnasium
 import numpy as np
 from gymnasium.vector import AutoresetMode
 
-from . import core
+from . import core, core_kernels
 from .core import Obstacles, Score
 from .env import UAVTrackEnv
 from .infos import sensor_infos
@@ -297,8 +297,8 @@ class UAVTrackVectorEnv:
                 f"action of world {k}, agent {self.possible_agents[i]!r} is not finite: "
                 f"{a[k, i].tolist()}"
             )
-        clipped = np.any(np.abs(a) > 1.0, axis=-1)
-        return np.clip(a, -1.0, 1.0) * self._scale, clipped
+        u, clipped = core_kernels.scaled_actions(a.reshape(-1, 4), self._scale)
+        return u.reshape(a.shape), clipped.reshape(a.shape[:-1])
 
     def sensor_infos(self, k: int) -> dict[str, dict]:
         """World k's `env.sensor_infos` of every agent of its latest step (or of its reset, if it
