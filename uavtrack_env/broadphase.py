@@ -145,6 +145,27 @@ def _known_rays(p, alive, car, samples, R, car_radius, box_c, box_h, r, margin=R
     return known
 
 
+def known_answers(
+    position: np.ndarray,
+    car_centres: np.ndarray,
+    samples: np.ndarray,
+    sample_radius: float,
+    car_radius: float,
+    bodies: Bodies,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """`known_rays` of the env's own float64 arrays, as `answers` gives them (one compiled
+    call)."""
+    return _known_answers(
+        position, bodies.alive, car_centres, samples, sample_radius, car_radius,
+        bodies.box_centres, bodies.box_half_extents, bodies.uav_radius,
+    )  # fmt: skip
+
+
+@numba.njit(cache=True)
+def _known_answers(p, alive, car, samples, R, car_radius, box_c, box_h, r):
+    return answers(_known_rays(p, alive, car, samples, R, car_radius, box_c, box_h, r))
+
+
 @numba.njit(cache=True)
 def answers(known):  # pragma: no cover (compiled)
     """`known_rays`' answers (K, n, s) as (reaches, unknown) bool arrays and the worlds with a

@@ -153,10 +153,11 @@ def agent_infos(
     too_close, tracking, effort = (
         score.uav_too_close.tolist(), score.tracking.tolist(), score.effort.tolist()
     )  # fmt: skip
-    contacts = {k: hit.tolist() for k, hit in m.contacts.items()}
+    hits = m.contacts
+    ground, obstacle, car = (hits[k].tolist() for k in ("ground", "obstacle", "target"))
     cut, n_clipped = clipped.tolist(), clip_count.tolist()
     disconnected = score.disconnected
-    position, velocity, acceleration = target.center(), target.velocity(), target.acceleration()
+    motion = target.kinematics()
     sensed = sensor_infos(rows, names, det, m.received, state)
     out = []
     for i, sense in zip(rows, sensed, strict=True):
@@ -166,6 +167,7 @@ def agent_infos(
             "disconnection": float(disconnected),
             "occlusion": float(occlusion),
         }
+        position, velocity, acceleration = motion.copy()
         info = {
             "cost": costs["collision"] + costs["disconnection"] + costs["occlusion"],
             "costs": costs,
@@ -174,7 +176,12 @@ def agent_infos(
                 "disconnection": disconnected,
                 "occlusion": occlusion,
             },
-            "collision_with": {"uav": too_close[i], **{k: hit[i] for k, hit in contacts.items()}},
+            "collision_with": {
+                "uav": too_close[i],
+                "ground": ground[i],
+                "obstacle": obstacle[i],
+                "target": car[i],
+            },
             "reward_tracking": -tracking[i],
             "reward_effort": -effort[i],
             "action_clipped": cut[i],
@@ -186,9 +193,9 @@ def agent_infos(
                 "pixel_error": pixel_error[i],
                 "center_pixel_error": center_error[i],
                 "depth_error": 1.0 / x3[i] - 1.0 / x3_ref[i] if in_front[i] else None,
-                "target_position": position.copy(),
-                "target_velocity": velocity.copy(),
-                "target_acceleration": acceleration.copy(),
+                "target_position": position,
+                "target_velocity": velocity,
+                "target_acceleration": acceleration,
                 "nearest_uav_distance": nearest_uav[i],
                 "nearest_obstacle_clearance": nearest_obstacle[i],
                 "target_clearance": target_clearance[i],

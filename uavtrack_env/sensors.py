@@ -185,7 +185,7 @@ class Detector:
         )  # fmt: skip
         known = None
         if bodies is not None:
-            known = broadphase.known_rays(
+            known = broadphase.known_answers(
                 positions, target_centers, samples, self._sample_radius, _CAR_RADIUS, bodies
             )
         reach = self._reach(worlds, positions, samples, known)
@@ -217,16 +217,16 @@ class Detector:
         worlds: list[World],
         positions: np.ndarray,
         samples: np.ndarray,
-        known: np.ndarray | None,
+        known: tuple[np.ndarray, np.ndarray, np.ndarray] | None,
     ) -> np.ndarray:
         """Whether each UAV's ray to each sample point (K, s, 3) reaches the car: (K n, s) bool.
-        The rays ``known`` (`broadphase.known_rays`) does not answer are cast in PyBullet."""
+        The rays ``known`` (`broadphase.known_answers`) does not answer are cast in PyBullet."""
         K, n = positions.shape[:2]
         s = self._n_samples
         if known is None:
             reach, rays, in_doubt = np.zeros((K, n, s), bool), np.ones((K, n, s), bool), range(K)
         else:
-            reach, rays, worlds_in_doubt = broadphase.answers(known)
+            reach, rays, worlds_in_doubt = known
             in_doubt = worlds_in_doubt.tolist()
         for k in in_doubt:
             i, j = np.nonzero(rays[k])  # this world's rays that go to PyBullet

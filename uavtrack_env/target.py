@@ -109,6 +109,14 @@ class TargetMotion:
         a = self.speed * self.turn_rate
         return np.array([-a * math.sin(self.heading), a * math.cos(self.heading), 0.0])
 
+    def kinematics(self) -> np.ndarray:
+        """(3, 3): `center`, `velocity` and `acceleration` as rows, in one array."""
+        v, a = self.speed, self.speed * self.turn_rate
+        c, s = math.cos(self.heading), math.sin(self.heading)
+        return np.array(
+            [self.x, self.y, CAR_HALF_EXTENTS[2], v * c, v * s, 0.0, -a * s, a * c, 0.0]
+        ).reshape(3, 3)
+
 
 def sample_path(
     program: tuple[Segment, ...], x: float, y: float, heading: float, duration: float, dt: float
