@@ -467,3 +467,29 @@ def test_telemetry_and_the_envs_own_signals(make_env):
         assert ep["steps"] == 6 and 0 <= ep["interventions"] <= 6
         assert ep["intervention_rate"] == pytest.approx(ep["interventions"] / 6)
         assert ep["mean_correction"] >= 0.0
+
+
+@pytest.mark.parametrize("live", [[0, 1, 2], [0, 2], [1]])
+def test_shield_actions_equal_the_numpy_formulation(live):
+    """The certified actions as `CBFShield.step` hands them on: clipped, the env's own u where
+    the shield left an action unchanged, finished UAVs untouched."""
+    from uavtrack_env.wrappers.shield import shield_actions
+
+    rng = np.random.default_rng(len(live))
+    scale = np.array([10.0, 10.0, 10.0, 0.6])
+    u = np.zeros((3, 4))
+    u[live] = rng.uniform(-1, 1, (len(live), 4)) * scale
+    action = u[live] + rng.uniform(-15, 15, (len(live), 4))
+    changed_live = np.arange(len(live)) % 2 == 0
+    action[~changed_live] = u[live][~changed_live]
+    proposed, certified, changed, u_env = shield_actions(
+        u, action, changed_live, np.array(live, np.int64), scale
+    )
+    want_certified = u / scale
+    want_certified[live] = np.clip(action / scale, -1.0, 1.0)
+    want_changed = np.zeros(3, bool)
+    want_changed[live] = changed_live
+    np.testing.assert_array_equal(proposed, u / scale)
+    np.testing.assert_array_equal(certified, want_certified)
+    np.testing.assert_array_equal(changed, want_changed)
+    np.testing.assert_array_equal(u_env, np.where(want_changed[:, None], want_certified * scale, u))

@@ -191,7 +191,8 @@ def sense(
         list(worlds), position, yaw, centers, headings, headings, rngs, bodies=bodies
     )
     received = receive_batch(pair, alive, cfg.comms, list(rngs))
-    hits = dict(zip(("ground", "obstacle", "target"), np.zeros((3, K, n), bool), strict=True))
+    none = np.zeros((3, K, n), bool)
+    hits = {"ground": none[0], "obstacle": none[1], "target": none[2]}
     for k, world in enumerate(worlds):
         if bodies is not None and not touch[k]:
             continue  # no UAV near anything: PyBullet would report no contact

@@ -286,7 +286,8 @@ class UAVTrackEnv(ParallelEnv):
         batch, batch_score = self._advance(u, clipped)
         obs = self._observe(batch)
         m, score = self._view(batch, batch_score)
-        rewards = {a: float(score.reward[self._index[a]]) for a in self.agents}
+        reward = score.reward.tolist()
+        rewards = {a: reward[self._index[a]] for a in self.agents}
         infos = self._infos(m, score, u, clipped)
         terminations, truncations = self._episode_end(score.collided)
         return obs, rewards, terminations, truncations, infos
@@ -437,7 +438,8 @@ class UAVTrackEnv(ParallelEnv):
     def _episode_end(self, collided: np.ndarray):
         live = self.agents
         terminated, truncate = self._end_arrays(collided)
-        terminations = {a: bool(terminated[self._index[a]]) for a in live}
+        ended = terminated.tolist()
+        terminations = {a: ended[self._index[a]] for a in live}
         truncations = {a: truncate for a in live}
         return terminations, truncations
 

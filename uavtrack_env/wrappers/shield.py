@@ -20,6 +20,7 @@ from __future__ import annotations
 import warnings
 from typing import Any
 
+import numba
 import numpy as np
 from pettingzoo.utils.wrappers import BaseParallelWrapper
 
@@ -41,6 +42,26 @@ def warn_if_lag_unaware(env_cfg: EnvConfig, cfg: ExpertConfig) -> None:
             "best effort",
             stacklevel=3,
         )
+
+
+@numba.njit(cache=True)
+def shield_actions(u, action, changed_live, live, scale):  # pragma: no cover (compiled)
+    """From the env's u (n, 4) (SI units) and the certified ``action`` (m, 4) of the UAVs
+    ``live``: the proposed and certified normalised actions (n, 4) (certified clipped to
+    [-1, 1], the proposed one where unchanged), which UAVs' actions changed (n,) and the u to
+    step (the certified action where changed, else the env's own u)."""
+    n = u.shape[0]
+    proposed, certified, u_env = u / scale, np.empty((n, 4)), u.copy()
+    changed = np.zeros(n, np.bool_)
+    certified[:] = proposed
+    for j in range(live.shape[0]):
+        i = live[j]
+        changed[i] = changed_live[j]
+        for c in range(4):
+            certified[i, c] = min(max(action[j, c] / scale[c], -1.0), 1.0)
+            if changed[i]:
+                u_env[i, c] = certified[i, c] * scale[c]
+    return proposed, certified, changed, u_env
 
 
 class CBFShield(BaseParallelWrapper):
@@ -116,16 +137,11 @@ class CBFShield(BaseParallelWrapper):
         live = [self._ids[a] for a in names]
         everyone = live == self._everyone  # every UAV acts, in index order: no fancy indexing
         done = certify_team([self.onboard[a] for a in names], u if everyone else u[live])
-        proposed = u / self._scale
-        if everyone:
-            certified, changed = done.action / self._scale, done.changed
-        else:
-            certified, changed = proposed.copy(), np.zeros(len(u), bool)
-            certified[live], changed[live] = done.action / self._scale, done.changed
-        np.minimum(np.maximum(certified, -1.0, out=certified), 1.0, out=certified)
+        proposed, certified, changed, u_env = shield_actions(
+            u, done.action, done.changed, np.asarray(live, np.int64), self._scale
+        )
         # An unchanged action is passed through as given (bit-identical behaviour).
         if self.env is self._raw:  # checked above: the env's step without checking again
-            u_env = np.where(changed[:, None], certified * self._scale, u)
             out = self._raw._step_checked(u_env, clipped & ~changed)
         else:
             out = self.env.step(
