@@ -99,7 +99,11 @@ class Measurements:
             detections=self.detections.world(k),
             distances=self.distances[k],
             received=self.received[k],
-            contacts={key: hit[k] for key, hit in self.contacts.items()},
+            contacts={
+                "ground": self.contacts["ground"][k],
+                "obstacle": self.contacts["obstacle"][k],
+                "target": self.contacts["target"][k],
+            },
             nearest_uav=self.nearest_uav[k],
             obstacle_clearance=self.obstacle_clearance[k, :, :m],
             nearest_obstacle=self.nearest_obstacle[k],
