@@ -8,7 +8,7 @@ import pytest
 from uavtrack_env import core_kernels
 from uavtrack_env.config import DT, DynamicsConfig
 from uavtrack_env.dynamics import integrate
-from uavtrack_env.infos import _pixel_truths
+from uavtrack_env.infos import NOTHING_NEAR, _truth_numbers
 
 
 def _state(rng: np.random.Generator, K: int, n: int):
@@ -55,33 +55,35 @@ def test_received_equals_the_numpy_mask(drop_prob):
     assert got.any() or drop_prob == 1.0
 
 
-def test_pixel_truths_equal_the_numpy_formulation():
-    """Capped box errors, the car centre's pixel error and the least angle over N_oi (pi with
-    no candidate; NaN propagates as in numpy)."""
+def test_truth_numbers_equal_the_numpy_formulation():
+    """Capped box errors, the car centre's pixel error, the least angle over N_oi (pi with no
+    candidate; NaN propagates as in numpy) and nearest distances with inf (or NaN) as NOTHING_NEAR."""
     rng = np.random.default_rng(2)
     n, M = 5, 4
     box = rng.uniform(-3000, 3000, (n, 2))
     box[1, 0] = np.nan
     features = rng.uniform(-1, 1, (n, 4))
     ref_px = rng.uniform(0, 600, (n, 2))
-    focal, principal, size = (
-        np.array([500.0, 510.0]),
-        np.array([320.0, 240.0]),
-        np.array([640.0, 480.0]),
-    )
+    focal, principal = np.array([500.0, 510.0]), np.array([320.0, 240.0])
+    size = np.array([640.0, 480.0])
     theta = rng.uniform(0, np.pi, (n, M))
     candidates = rng.random((n, M)) < 0.5
     candidates[0] = False
     candidates[2, :2] = True
     theta[2, 1] = np.nan
-    pixel, center, least = _pixel_truths(
-        box, features, ref_px, focal, principal, size, theta, candidates
+    nearest = rng.uniform(0, 30, (2, n))
+    nearest[0, 3] = nearest[1, 0] = np.inf
+    nearest[1, 2] = np.nan
+    pixel, center, least, finite = _truth_numbers(
+        box, features, ref_px, focal, principal, size, theta, candidates, nearest
     )
     np.testing.assert_array_equal(pixel, np.clip(box - ref_px, -size, size))
     np.testing.assert_array_equal(center, features[:, :2] * focal + principal - ref_px)
     want = np.where(candidates, theta, np.pi).min(axis=1, initial=np.pi)
     np.testing.assert_array_equal(least, want)
     assert least[0] == np.pi and np.isnan(least[2]) and np.isnan(pixel[1, 0])
+    np.testing.assert_array_equal(finite, np.where(np.isfinite(nearest), nearest, NOTHING_NEAR))
+    assert finite[0, 3] == NOTHING_NEAR and finite[0, 0] == nearest[0, 0]
 
 
 def test_scaled_actions_equal_numpy_clip_and_scale():

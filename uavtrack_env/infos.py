@@ -50,20 +50,17 @@ class PixelFrame:
         )
 
 
-def _finite(distances: np.ndarray) -> list[float]:
-    """Nearest distances, `NOTHING_NEAR` where there is nothing (inf)."""
-    return [d if math.isfinite(d) else NOTHING_NEAR for d in distances.tolist()]
-
-
 @numba.njit(cache=True)
-def _pixel_truths(
-    box_center, features, reference_px, focal, principal, size, theta, candidates
+def _truth_numbers(
+    box_center, features, reference_px, focal, principal, size, theta, candidates, nearest
 ):  # pragma: no cover (compiled)
     """Per UAV: the box centre's error to the reference (px, capped at the image size: a car
-    behind the camera projects arbitrarily far), the car centre's error (px) and the least
-    occlusion angle over N_oi (pi without candidates)."""
+    behind the camera projects arbitrarily far), the car centre's error (px), the least
+    occlusion angle over N_oi (pi without candidates) and the ``nearest`` distances (rows: to
+    a UAV, to an obstacle) with `NOTHING_NEAR` for nothing (not finite)."""
     n, M = theta.shape
     pixel_error, center_error, least = np.empty((n, 2)), np.empty((n, 2)), np.empty(n)
+    finite = np.where(np.isfinite(nearest), nearest, NOTHING_NEAR)
     for i in range(n):
         for c in range(2):
             e = box_center[i, c] - reference_px[i, c]
@@ -74,7 +71,7 @@ def _pixel_truths(
             t = theta[i, m]
             if candidates[i, m] and (t < least[i] or t != t):  # NaN stays, as in np.min
                 least[i] = t
-    return pixel_error, center_error, least
+    return pixel_error, center_error, least, finite
 
 
 def sensor_infos(
@@ -93,9 +90,11 @@ def sensor_infos(
     u, v, depth, psi = det.u.tolist(), det.v.tolist(), det.depth.tolist(), det.psi.tolist()
     cut, heard = det.truncated.tolist(), received.tolist()
     yaws, rates = yaw.tolist(), yaw_rate.tolist()
+    velocities = velocity.copy()
     out = []
     for i in rows:
         ok = detected[i]
+        team = position.copy()  # this UAV's own row and its team-mates' rows
         out.append(
             {
                 "measurement": {
@@ -109,14 +108,12 @@ def sensor_infos(
                     "truncated_v": ok and cut[i][1],
                 },
                 "own": {
-                    "position": position[i].copy(),
+                    "position": team[i],
                     "yaw": yaws[i],
-                    "velocity": velocity[i].copy(),
+                    "velocity": velocities[i],
                     "yaw_rate": rates[i],
                 },
-                "neighbours": {
-                    names[j]: position[j].copy() for j, got in enumerate(heard[i]) if got
-                },
+                "neighbours": {names[j]: team[j] for j, got in enumerate(heard[i]) if got},
             }
         )
     return out
@@ -139,15 +136,16 @@ def agent_infos(
     report (`sensor_infos`), the reference and the ground truth (the env's docstring)."""
     det = m.detections
     s, theta = det.true_features, m.occlusion_angles
-    pixel_error, center_error, least_theta = _pixel_truths(
+    nearest = np.stack((m.nearest_uav, m.nearest_obstacle))
+    pixel_error, center_error, least_theta, nearest = _truth_numbers(
         det.box_center, s, pixels.reference_px, pixels.focal, pixels.principal,
-        pixels.image_size, theta, m.occlusion_candidates,
+        pixels.image_size, theta, m.occlusion_candidates, nearest,
     )  # fmt: skip
     features, thetas = s.copy(), theta.copy()
     candidates, refs, applied = m.occlusion_candidates.copy(), references.copy(), u.copy()
     x3, x3_ref = s[:, 2].tolist(), references[:, 2].tolist()
     in_front, blocked = det.in_front.tolist(), det.blocked_fraction.tolist()
-    nearest_uav, nearest_obstacle = _finite(m.nearest_uav), _finite(m.nearest_obstacle)
+    nearest_uav, nearest_obstacle = nearest.tolist()
     target_clearance, least = m.target_clearance.tolist(), least_theta.tolist()
     collided, occluded = score.collided.tolist(), score.occluded.tolist()
     too_close, tracking, effort = (
