@@ -44,8 +44,11 @@ def vec_rate(shield: bool, steps: int, n_envs: int, seed: int) -> float:
     return rate
 
 
-def learn_rate(shield: bool, steps: int, n_envs: int, n_epochs: int, seed: int) -> float:
-    """Agent-steps/s of PPO.learn (collection and updates)."""
+def learn_rate(
+    shield: bool, steps: int, n_envs: int, n_epochs: int, seed: int
+) -> tuple[float, float]:
+    """Agent-steps/s of PPO.learn (collection and updates), and the share of its time spent in
+    the updates (`PPO.train`)."""
     import torch
     from stable_baselines3 import PPO
 
@@ -64,11 +67,21 @@ def learn_rate(shield: bool, steps: int, n_envs: int, n_epochs: int, seed: int) 
         seed=seed,
         device="cpu",
     )
+    updates = 0.0
+    train = model.train
+
+    def timed_train() -> None:
+        nonlocal updates
+        t = time.perf_counter()
+        train()
+        updates += time.perf_counter() - t
+
+    model.train = timed_train
     t0 = time.perf_counter()
     model.learn(total_timesteps=steps)
-    rate = model.num_timesteps / (time.perf_counter() - t0)
+    elapsed = time.perf_counter() - t0
     vec.close()
-    return rate
+    return model.num_timesteps / elapsed, updates / elapsed
 
 
 def main() -> None:
@@ -84,20 +97,33 @@ def main() -> None:
         f"{platform.python_version()}; {args.n_envs} copies x 3 UAVs, "
         f"{args.timesteps} agent-steps, median of {args.repeats}"
     )
-    res = {}
+    res, shares = {}, {}
     for shield in (False, True):
+        learned = [
+            learn_rate(shield, args.timesteps, args.n_envs, args.n_epochs, s)
+            for s in range(args.repeats)
+        ]
         res[shield] = (
             statistics.median(
                 vec_rate(shield, args.timesteps, args.n_envs, s) for s in range(args.repeats)
             ),
-            statistics.median(
-                learn_rate(shield, args.timesteps, args.n_envs, args.n_epochs, s)
-                for s in range(args.repeats)
-            ),
+            statistics.median(rate for rate, _ in learned),
         )
-    print(f"{'config':<14} {'VecEnv agent-steps/s':>21} {'PPO.learn agent-steps/s':>24}")
+        shares[shield] = statistics.median(share for _, share in learned)
+    print(
+        f"{'config':<14} {'VecEnv agent-steps/s':>21} {'PPO.learn agent-steps/s':>24} "
+        f"{'updates share':>14} {'ceiling':>9}"
+    )
     for shield, (v, lr) in res.items():
-        print(f"{'PPO + shield' if shield else 'PPO':<14} {v:>21.0f} {lr:>24.0f}")
+        share = shares[shield]
+        print(
+            f"{'PPO + shield' if shield else 'PPO':<14} {v:>21.0f} {lr:>24.0f} "
+            f"{share:>14.2f} {lr / share:>9.0f}"
+        )
+    print(
+        "ceiling: PPO.learn agent-steps/s if collecting cost nothing (the updates alone, "
+        f"{args.n_epochs} epochs, one torch thread)"
+    )
     (v0, l0), (v1, l1) = res[False], res[True]
     print(f"{'shield cost':<14} {v0 / v1:>20.2f}x {l0 / l1:>23.2f}x  (slowdown)")
     us = 1e6 * (1 / v1 - 1 / v0)
