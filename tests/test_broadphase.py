@@ -21,6 +21,7 @@ from uavtrack_env.broadphase import (
     UNKNOWN,
     Bodies,
     contacts_in_doubt,
+    known_answers,
     known_rays,
 )
 from uavtrack_env.sensors import _to_world
@@ -102,6 +103,12 @@ def test_skipped_rays_and_contacts_are_what_pybullet_reports(seed):
         known = known_rays(
             env.position[None], env.target.center()[None], ends[None], radius, car, bodies
         )[0]
+        reaches, unknown, in_doubt = known_answers(
+            env.position[None], env.target.center()[None], ends[None], radius, car, bodies
+        )
+        np.testing.assert_array_equal(reaches[0], known == REACHES)
+        np.testing.assert_array_equal(unknown[0], known == UNKNOWN)
+        assert in_doubt.tolist() == ([0] if (known == UNKNOWN).any() else [])
         reach = world.rays_reach_target(np.repeat(env.position, s, 0), np.tile(ends, (6, 1)))
         proven = known != UNKNOWN
         np.testing.assert_array_equal(reach.reshape(6, s)[proven], known[proven] == REACHES)

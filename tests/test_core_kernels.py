@@ -57,7 +57,8 @@ def test_received_equals_the_numpy_mask(drop_prob):
 
 def test_truth_numbers_equal_the_numpy_formulation():
     """Capped box errors, the car centre's pixel error, the least angle over N_oi (pi with no
-    candidate; NaN propagates as in numpy) and nearest distances with inf (or NaN) as NOTHING_NEAR."""
+    candidate; NaN propagates as in numpy) and nearest distances, NOTHING_NEAR where not
+    finite."""
     rng = np.random.default_rng(2)
     n, M = 5, 4
     box = rng.uniform(-3000, 3000, (n, 2))

@@ -153,8 +153,8 @@ def known_answers(
     car_radius: float,
     bodies: Bodies,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """`known_rays` of the env's own float64 arrays, as `answers` gives them (one compiled
-    call)."""
+    """`known_rays` of the env's own float64 arrays as (reaches (K, n, s) bool, unknown
+    (K, n, s) bool, the worlds with a ray to cast (int64)), in one compiled call."""
     return _known_answers(
         position, bodies.alive, car_centres, samples, sample_radius, car_radius,
         bodies.box_centres, bodies.box_half_extents, bodies.uav_radius,
@@ -162,14 +162,8 @@ def known_answers(
 
 
 @numba.njit(cache=True)
-def _known_answers(p, alive, car, samples, R, car_radius, box_c, box_h, r):
-    return answers(_known_rays(p, alive, car, samples, R, car_radius, box_c, box_h, r))
-
-
-@numba.njit(cache=True)
-def answers(known):  # pragma: no cover (compiled)
-    """`known_rays`' answers (K, n, s) as (reaches, unknown) bool arrays and the worlds with a
-    ray to cast (int64)."""
+def _known_answers(p, alive, car, samples, R, car_radius, box_c, box_h, r):  # pragma: no cover
+    known = _known_rays(p, alive, car, samples, R, car_radius, box_c, box_h, r)
     reaches, unknown = known == REACHES, known == UNKNOWN
     K = known.shape[0]
     worlds = np.empty(K, np.int64)
