@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import json
 
 import numpy as np
@@ -43,6 +44,19 @@ def test_collect_records_the_experts_actions():
         o, _, _, _, infos = env.step(acts)
     with pytest.raises(ValueError, match="episodes"):
         bc.collect(_small_world, episodes=0, seed=0)
+    with pytest.raises(ValueError, match="workers"):
+        bc.collect(_small_world, episodes=1, seed=0, workers=0)
+
+
+@pytest.mark.slow
+def test_collect_in_processes_records_the_same_demonstrations():
+    """Two worker processes give the pairs of one, in the same order (episodes by seed)."""
+    make = functools.partial(uavtrack_v0.parallel_env, scenario="random", max_cycles=30)
+    serial = bc.collect(make, episodes=3, seed=11, progress=False)
+    parallel = bc.collect(make, episodes=3, seed=11, progress=False, workers=2)
+    for a, b in zip(serial, parallel, strict=True):
+        np.testing.assert_array_equal(a, b)
+    assert len(serial[0]) == 3 * 30 * 3
 
 
 class _Box(gymnasium.Env):

@@ -92,6 +92,8 @@ def test_bad_arguments(tmp_path):
         ppo.parse_args(["--out", str(tmp_path), "--eval-scenarios", "AD"])
     with pytest.raises(ValueError, match="no checkpoint"):
         ppo.last_checkpoint(tmp_path)
+    with pytest.raises(ValueError, match="--bc-workers must be >= 1"):
+        ppo.parse_args(["--out", str(tmp_path), "--bc-workers", "0"])
 
 
 def dive(obs, infos):

@@ -13,6 +13,8 @@ advantages first undo much of what was cloned (measured: the mean episode return
 
 from __future__ import annotations
 
+import functools
+import multiprocessing
 from collections.abc import Callable
 from typing import Any
 
@@ -29,31 +31,55 @@ def collect(
     seed: int,
     progress: bool = True,
     config: ExpertConfig | str | None = None,
+    workers: int = 1,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Expert rollouts of a full episode each on ``make_env()`` worlds seeded ``seed + e``;
-    ``config`` is the expert's `ExpertConfig` or preset name (default 'tuned').
+    ``config`` is the expert's `ExpertConfig` or preset name (default 'tuned'). With
+    ``workers`` > 1 the episodes run in that many processes (``make_env`` must then be
+    picklable, e.g. a `functools.partial`); the arrays are the same as with one.
 
     Returns (observations (N, n_obs), actions (N, 4)), float32, one row per live agent-step.
     """
     if episodes < 1:
         raise ValueError(f"episodes must be >= 1, got {episodes}")
-    obs_rows, act_rows = [], []
+    if workers < 1:
+        raise ValueError(f"workers must be >= 1, got {workers}")
+    seeds = range(seed, seed + episodes)
     bar = tqdm(total=episodes, desc="expert demos", unit="episode", disable=not progress)
-    for e in range(episodes):
-        env = make_env()
-        obs, infos = env.reset(seed=seed + e)
-        expert = ExpertPolicy.from_env(env, config)
-        while env.agents:
-            actions = expert(obs, infos)
-            for agent, a in actions.items():
-                obs_rows.append(obs[agent])
-                act_rows.append(a)
-            obs, _, _, _, infos = env.step(actions)
-        expert.close()
-        env.close()
-        bar.update()
+    done: list[tuple[list, list]] = []
+    if workers == 1:
+        for s in seeds:
+            done.append(_episode(make_env, config, s, threads=None))
+            bar.update()
+    else:
+        run = functools.partial(_episode, make_env, config, threads=1)
+        with multiprocessing.get_context("spawn").Pool(min(workers, episodes)) as pool:
+            for pairs in pool.imap(run, seeds):  # in seed order
+                done.append(pairs)
+                bar.update()
     bar.close()
+    obs_rows = [o for rows, _ in done for o in rows]
+    act_rows = [a for _, rows in done for a in rows]
     return np.asarray(obs_rows, np.float32), np.asarray(act_rows, np.float32)
+
+
+def _episode(
+    make_env: Callable[[], Any], config: ExpertConfig | str | None, seed: int, threads: int | None
+) -> tuple[list, list]:
+    """One expert episode's (observations, actions) of every live agent-step."""
+    env = make_env()
+    obs, infos = env.reset(seed=seed)
+    expert = ExpertPolicy.from_env(env, config, threads)
+    obs_rows, act_rows = [], []
+    while env.agents:
+        actions = expert(obs, infos)
+        for agent, a in actions.items():
+            obs_rows.append(obs[agent])
+            act_rows.append(a)
+        obs, _, _, _, infos = env.step(actions)
+    expert.close()
+    env.close()
+    return obs_rows, act_rows
 
 
 def actor_parameters(policy: Any, with_log_std: bool = True) -> list:

@@ -26,8 +26,8 @@ started up to ``--start-offset`` m off formation, and the env's RL defaults: r =
 stage cost of eq. 18) minus a collision penalty, so that ending an episode by crashing never pays,
 and a collision ends that UAV's episode only.
 
-Warm start from the expert (``--bc-episodes N``): N expert episodes are recorded (cached in
-``--bc-demos``), the actor is fitted to them (checkpoint 0), the critic alone trains for
+Warm start from the expert (``--bc-episodes N``): N expert episodes are recorded (in
+``--bc-workers`` processes; cached in ``--bc-demos``), the actor is fitted to them (checkpoint 0), the critic alone trains for
 ``--value-warmup`` steps, then PPO fine-tunes, optionally with ``--bc-anchor`` cloning steps
 after every update. The recipe used for the README's table:
 
@@ -40,6 +40,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import functools
 import json
 import re
 import time
@@ -133,6 +134,10 @@ class Args:
         metadata={"help": "expert episodes for a behaviour-cloning warm start (0: from scratch)"},
     )
     bc_epochs: int = field(default=30, metadata={"help": "behaviour-cloning epochs"})
+    bc_workers: int = field(
+        default=1,
+        metadata={"help": "processes recording the expert episodes (the same demos for any)"},
+    )
     bc_demos: Path | None = field(
         default=None,
         metadata={"help": "demonstrations .npz to reuse if it exists, else written there"},
@@ -224,7 +229,10 @@ def make_args(**given: Any) -> Args:
     if args.out is None:
         raise ValueError("--out DIR is required (or --resume DIR)")
     args.out = Path(args.out)
-    positive = ("timesteps", "n_envs", "n_uavs", "max_cycles", "n_steps", "batch_size", "log_every")
+    positive = (
+        "timesteps", "n_envs", "n_uavs", "max_cycles", "n_steps", "batch_size", "log_every",
+        "bc_workers",
+    )  # fmt: skip
     for name in positive:
         if int(getattr(args, name)) < 1:
             raise ValueError(f"--{name.replace('_', '-')} must be >= 1")
@@ -263,8 +271,7 @@ def env_fn(args: Args):
     """Factory of one unshielded training world (a ParallelEnv)."""
     from uavtrack_env import uavtrack_v0
 
-    kwargs = world_settings(args)
-    return lambda: uavtrack_v0.parallel_env(**kwargs)
+    return functools.partial(uavtrack_v0.parallel_env, **world_settings(args))
 
 
 def make_vec_env(args: Args, lambda_init: float = 0.0):
@@ -328,8 +335,9 @@ def demonstrations(args: Args) -> tuple[np.ndarray, np.ndarray]:
             return d["obs"], d["actions"]
     make = env_fn(args)
     obs, actions = bc.collect(
-        make, args.bc_episodes, BC_SEED + args.seed, args.progress, expert_settings(args)
-    )
+        make, args.bc_episodes, BC_SEED + args.seed, args.progress, expert_settings(args),
+        args.bc_workers,
+    )  # fmt: skip
     path.parent.mkdir(parents=True, exist_ok=True)
     np.savez_compressed(path, obs=obs, actions=actions)
     return obs, actions
