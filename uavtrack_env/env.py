@@ -144,7 +144,7 @@ class UAVTrackEnv(ParallelEnv):
     R_s. Disconnection: the UAVs' graph with edges <= R_c is not connected. Occlusion: obstacles
     (or UAVs) block more of the car's sample points than the detector can tolerate. Every info
     value is finite: a nearest distance to nothing (a UAV alone, a world without obstacles) is
-    ``NOTHING_NEAR`` (1e4 m).
+    `infos.NOTHING_NEAR` (1e4 m).
 
     **Episode end**: ``terminate_on_collision`` = 'agent' (default) terminates a UAV that
     collides and the team flies on; 'all' terminates every UAV (``defaults="paper"``); 'never'

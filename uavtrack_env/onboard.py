@@ -132,7 +132,7 @@ def input_row(info: dict) -> tuple:
 def input_rows(det: Detections, state: tuple[np.ndarray, ...]) -> np.ndarray:
     """`bank.INPUT_COLUMNS` rows (..., 15) of a detector frame ``det`` and the UAVs' own state
     (position, yaw, velocity, yaw rate), arrays with the same leading axes: what `input_row`
-    reads from each UAV's info (`env.sensor_infos`), without the dicts (one compiled call)."""
+    reads from each UAV's info (`infos.sensor_infos`), without the dicts (one compiled call)."""
     lead = det.detected.shape
     return input_rows_of(*_flat_frame(det, state)).reshape(*lead, 15)
 

@@ -301,7 +301,7 @@ class UAVTrackVectorEnv:
         return u.reshape(a.shape), clipped.reshape(a.shape[:-1])
 
     def sensor_infos(self, k: int) -> dict[str, dict]:
-        """World k's `env.sensor_infos` of every agent of its latest step (or of its reset, if it
+        """World k's `infos.sensor_infos` of every agent of its latest step (or of its reset, if it
         reset since), by agent: the measurement, own state and messages an onboard stack reads
         (`uavtrack_env.wrappers.VectorCBFShield`)."""
         infos = self._world_infos[k]
