@@ -27,9 +27,9 @@ stage cost of eq. 18) minus a collision penalty, so that ending an episode by cr
 and a collision ends that UAV's episode only.
 
 Warm start from the expert (``--bc-episodes N``): N expert episodes are recorded (in
-``--bc-workers`` processes; cached in ``--bc-demos``), the actor is fitted to them (checkpoint 0), the critic alone trains for
-``--value-warmup`` steps, then PPO fine-tunes, optionally with ``--bc-anchor`` cloning steps
-after every update. The recipe used for the README's table:
+``--bc-workers`` processes; cached in ``--bc-demos``), the actor is fitted to them (checkpoint
+0), the critic alone trains for ``--value-warmup`` steps, then PPO fine-tunes, optionally with
+``--bc-anchor`` cloning steps after every update. The recipe used for the README's table:
 
     python -m train.ppo --shield --bc-episodes 60 --bc-anchor 10 --value-warmup 100000 \
         --target-kl 0.01 --learning-rate 5e-5 --log-std-init -3.5 --timesteps 800000 \

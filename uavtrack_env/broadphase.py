@@ -34,7 +34,7 @@ left the episode are parked in PyBullet ~1.4e4 m away, out of every shorter segm
 
 
 REACHES, BLOCKED, UNKNOWN = 1, 0, -1
-"""`known_rays`' answers: the ray's first hit is the car, is another body, or is for PyBullet."""
+"""A ray's answers: its first hit is the car, is another body, or is for PyBullet."""
 
 
 class Bodies(NamedTuple):
@@ -49,35 +49,11 @@ class Bodies(NamedTuple):
     uav_radius: float
 
 
-def known_rays(
-    position: np.ndarray,
-    car_centres: np.ndarray,
-    samples: np.ndarray,
-    sample_radius: float,
-    car_radius: float,
-    bodies: Bodies,
-) -> np.ndarray:
-    """(K, n, s) int8: whether the ray from UAV i of world k to sample j `REACHES` the car, is
-    `BLOCKED`, or is `UNKNOWN` (cast it).
-
-    position (K, n, 3) are the ray starts, car_centres (K, 3), samples (K, s, 3) the ray ends
-    inside the car's box, at most ``sample_radius`` from its centre; ``car_radius`` is the car
-    box's half diagonal."""
-    return _known_rays(
-        np.ascontiguousarray(position, np.float64),
-        np.ascontiguousarray(bodies.alive, np.bool_),
-        np.ascontiguousarray(car_centres, np.float64), np.ascontiguousarray(samples, np.float64),
-        float(sample_radius), float(car_radius),
-        np.ascontiguousarray(bodies.box_centres, np.float64),
-        np.ascontiguousarray(bodies.box_half_extents, np.float64), float(bodies.uav_radius),
-    )  # fmt: skip
-
-
 @numba.njit(cache=True)
 def _known_rays(p, alive, car, samples, R, car_radius, box_c, box_h, r, margin=RAY_MARGIN):
-    """`known_rays`. Each ray to a sample lies within R (the samples' largest distance from
-    the car's centre) of the segment to the car's centre, so only the bodies near that capsule
-    are tested ray by ray."""
+    """`known_answers`' answers as int8 (K, n, s). Each ray to a sample lies within R (the
+    samples' largest distance from the car's centre) of the segment to the car's centre, so only
+    the bodies near that capsule are tested ray by ray."""
     K, n, s, M = p.shape[0], p.shape[1], samples.shape[1], box_c.shape[1]
     known = np.full((K, n, s), REACHES, np.int8)
     reach2, inside2 = (r + margin) ** 2, max(r - margin, 0.0) ** 2
@@ -153,8 +129,13 @@ def known_answers(
     car_radius: float,
     bodies: Bodies,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """`known_rays` of the env's own float64 arrays as (reaches (K, n, s) bool, unknown
-    (K, n, s) bool, the worlds with a ray to cast (int64)), in one compiled call."""
+    """Whether the ray from UAV i of world k to sample j `REACHES` the car, is `BLOCKED`, or is
+    `UNKNOWN` (cast it), as (reaches (K, n, s) bool, unknown (K, n, s) bool, the worlds with a
+    ray to cast (int64)); a ray neither reaching nor unknown is blocked. One compiled call.
+
+    position (K, n, 3) are the ray starts, car_centres (K, 3), samples (K, s, 3) the ray ends
+    inside the car's box, at most ``sample_radius`` from its centre, all float64 and C-ordered
+    (the env's own arrays); ``car_radius`` is the car box's half diagonal."""
     return _known_answers(
         position, bodies.alive, car_centres, samples, sample_radius, car_radius,
         bodies.box_centres, bodies.box_half_extents, bodies.uav_radius,

@@ -175,7 +175,7 @@ class Detector:
         """`detect` for K worlds at once: positions (K, n, 3), yaws (K, n), the cars' centres
         (K, 3), yaws and headings (K,); each world casts its rays in its own PyBullet client
         and draws its noise from its own generator. With ``bodies`` (the env's record of what a ray
-        may meet) only the rays whose answer `broadphase.known_rays` cannot prove go to
+        may meet) only the rays whose answer `broadphase.known_answers` cannot prove go to
         PyBullet (None: all).
         Returns arrays (K, n, ...)."""
         K, n = yaws.shape
