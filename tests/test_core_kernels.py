@@ -75,9 +75,10 @@ def test_truth_numbers_equal_the_numpy_formulation():
     nearest = rng.uniform(0, 30, (2, n))
     nearest[0, 3] = nearest[1, 0] = np.inf
     nearest[1, 2] = np.nan
-    pixel, center, least, finite = _truth_numbers(
-        box, features, ref_px, focal, principal, size, theta, candidates, nearest
+    pixel, center, least, *near = _truth_numbers(
+        box, features, ref_px, focal, principal, size, theta, candidates, nearest[0], nearest[1]
     )
+    finite = np.stack(near)
     np.testing.assert_array_equal(pixel, np.clip(box - ref_px, -size, size))
     np.testing.assert_array_equal(center, features[:, :2] * focal + principal - ref_px)
     want = np.where(candidates, theta, np.pi).min(axis=1, initial=np.pi)

@@ -52,15 +52,25 @@ class PixelFrame:
 
 @numba.njit(cache=True)
 def _truth_numbers(
-    box_center, features, reference_px, focal, principal, size, theta, candidates, nearest
+    box_center,
+    features,
+    reference_px,
+    focal,
+    principal,
+    size,
+    theta,
+    candidates,
+    near_uav,
+    near_obstacle,
 ):  # pragma: no cover (compiled)
     """Per UAV: the box centre's error to the reference (px, capped at the image size: a car
     behind the camera projects arbitrarily far), the car centre's error (px), the least
-    occlusion angle over N_oi (pi without candidates) and the ``nearest`` distances (rows: to
-    a UAV, to an obstacle) with `NOTHING_NEAR` for nothing (not finite)."""
+    occlusion angle over N_oi (pi without candidates) and the nearest distances to a UAV and
+    to an obstacle with `NOTHING_NEAR` for nothing (not finite)."""
     n, M = theta.shape
     pixel_error, center_error, least = np.empty((n, 2)), np.empty((n, 2)), np.empty(n)
-    finite = np.where(np.isfinite(nearest), nearest, NOTHING_NEAR)
+    uav = np.where(np.isfinite(near_uav), near_uav, NOTHING_NEAR)
+    obstacle = np.where(np.isfinite(near_obstacle), near_obstacle, NOTHING_NEAR)
     for i in range(n):
         for c in range(2):
             e = box_center[i, c] - reference_px[i, c]
@@ -71,7 +81,7 @@ def _truth_numbers(
             t = theta[i, m]
             if candidates[i, m] and (t < least[i] or t != t):  # NaN stays, as in np.min
                 least[i] = t
-    return pixel_error, center_error, least, finite
+    return pixel_error, center_error, least, uav, obstacle
 
 
 def sensor_infos(
@@ -136,16 +146,15 @@ def agent_infos(
     report (`sensor_infos`), the reference and the ground truth (the env's docstring)."""
     det = m.detections
     s, theta = det.true_features, m.occlusion_angles
-    nearest = np.stack((m.nearest_uav, m.nearest_obstacle))
-    pixel_error, center_error, least_theta, nearest = _truth_numbers(
+    pixel_error, center_error, least_theta, near_uav, near_obstacle = _truth_numbers(
         det.box_center, s, pixels.reference_px, pixels.focal, pixels.principal,
-        pixels.image_size, theta, m.occlusion_candidates, nearest,
+        pixels.image_size, theta, m.occlusion_candidates, m.nearest_uav, m.nearest_obstacle,
     )  # fmt: skip
     features, thetas = s.copy(), theta.copy()
     candidates, refs, applied = m.occlusion_candidates.copy(), references.copy(), u.copy()
     x3, x3_ref = s[:, 2].tolist(), references[:, 2].tolist()
     in_front, blocked = det.in_front.tolist(), det.blocked_fraction.tolist()
-    nearest_uav, nearest_obstacle = nearest.tolist()
+    nearest_uav, nearest_obstacle = near_uav.tolist(), near_obstacle.tolist()
     target_clearance, least = m.target_clearance.tolist(), least_theta.tolist()
     collided, occluded = score.collided.tolist(), score.occluded.tolist()
     too_close, tracking, effort = (
