@@ -61,10 +61,10 @@ def test_a_shielded_step_leaves_the_onboard_kernels_cached():
 @pytest.mark.slow
 def test_an_expert_run_leaves_its_kernels_cached(tmp_path):
     """On a machine whose numba cache is empty, an expert episode (the README's job) compiles
-    every kernel the runner's first-run notice checks for an unshielded env, so a second run
-    prints no notice (run in fresh processes with their own cache)."""
+    every kernel the runner's first-run notice checks for an unshielded env, the CBF-QP's
+    correction kernel included though 20 steps correct nothing, so a second run prints no
+    notice (run in fresh processes with their own cache)."""
     script = """
-import numpy as np
 from uavtrack_env import uavtrack_v0
 from uavtrack_env.expert import ExpertPolicy
 from uavtrack_env.runner import run_episode
@@ -72,7 +72,6 @@ env = uavtrack_v0.parallel_env(scenario="A", defaults="paper")
 env.reset(seed=0)
 expert = ExpertPolicy.from_env(env, "tuned", threads=1)
 run_episode(env, expert, seed=0, steps=20, progress=True)
-expert.onboard["uav_0"].certify(np.full(4, 20.0))  # a corrected command, as any longer run has
 """
     env = dict(os.environ, NUMBA_CACHE_DIR=str(tmp_path), UAVTRACK_JIT="0")
     runs = [
@@ -82,3 +81,32 @@ expert.onboard["uav_0"].certify(np.full(4, 20.0))  # a corrected command, as any
     assert [r.returncode for r in runs] == [0, 0], runs[0].stderr[-2000:]
     assert "compiling the onboard stack" in runs[0].stderr
     assert "compiling the onboard stack" not in runs[1].stderr
+
+
+@pytest.mark.slow
+def test_the_expert_compiles_its_correction_kernel_before_the_episode():
+    """`ExpertPolicy.compile_kernels` (called by the runner before its loop) gives the
+    CBF-QP's correction kernel the argument types of the closed loop's own corrections: an
+    A0 episode with corrected actions adds no second compiled signature (fresh process)."""
+    script = """
+from baselines.evaluate import world_kwargs
+from uavtrack_env import uavtrack_v0
+from uavtrack_env.expert import ExpertPolicy
+from uavtrack_env.safety.qp_layers import certify_changed
+env = uavtrack_v0.parallel_env(**world_kwargs("A", 0, 400, dynamics="lag", noise=True,
+                                              render=False))
+obs, infos = env.reset(seed=0)
+expert = ExpertPolicy.from_env(env, "tuned", threads=1)
+assert not certify_changed.signatures
+expert.compile_kernels()
+compiled = list(certify_changed.signatures)
+corrected = 0
+while env.agents:
+    obs, _, _, _, infos = env.step(expert(obs, infos))
+    corrected += sum(bool(s.last_report and s.last_report.active) for s in expert.planners.values())
+print(len(compiled), corrected, list(certify_changed.signatures) == compiled)
+"""
+    run = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True)
+    assert run.returncode == 0, run.stderr[-2000:]
+    n_compiled, corrected, same = run.stdout.split()[-3:]
+    assert n_compiled == "1" and int(corrected) > 0 and same == "True", run.stdout

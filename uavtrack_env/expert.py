@@ -19,6 +19,7 @@ from .config import DT, EnvConfig
 from .control import NMPC, NMPCResult
 from .control.viewpoint import ViewpointPlanner
 from .geometry import world_to_cam_vec
+from .kernels import compile_correction
 from .onboard import observe_team, onboard_team
 from .presets import ExpertConfig, expert_config
 from .safety import ShieldReport
@@ -132,6 +133,12 @@ class ExpertPolicy:
                 self._pool_pid = os.getpid()
             plans = list(self._pool.map(lambda agent: self._plan(agent, infos[agent]), agents))
         return {agent: self._record(plan) for agent, plan in zip(agents, plans, strict=True)}
+
+    def compile_kernels(self) -> None:
+        """Compile the CBF-QP's correction kernel now rather than at the first corrected
+        action (`kernels.compile_correction`); nothing without the CBF."""
+        if self.use_cbf:
+            compile_correction(self.onboard[self.agent_names[0]].filter)
 
     def close(self) -> None:
         """Stop the planning threads (a later call starts them again)."""

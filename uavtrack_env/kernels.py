@@ -10,8 +10,11 @@ from __future__ import annotations
 from collections.abc import Iterable
 from typing import Any
 
+import numpy as np
+
 from .estimation.bank import _bank_step
 from .onboard_pass import observe_frame_step, observe_pass, observe_step
+from .safety.cbf import OBSTACLE, CBFRows
 from .safety.qp_arrays import nominal_holds
 from .safety.qp_layers import certify_changed, certify_many
 
@@ -39,3 +42,17 @@ def kernels_cached(kernels: Iterable[Any] | None = None) -> bool:
         except Exception:  # numba's cache internals differ: do not guess
             continue
     return True
+
+
+def compile_correction(safety_filter: Any) -> None:
+    """Compile now (or load from numba's cache) the CBF-QP's correction kernel,
+    `qp_layers.certify_changed`, with the argument types of ``safety_filter``'s own calls (a
+    `SafetyFilter`). An episode otherwise compiles it at its first corrected action: on a
+    machine's first run, a pause of ~15 s in mid-episode. Certifies a hover that one
+    obstacle row rejects; the filter is stateless, so nothing else changes."""
+    one = np.ones(1)
+    rows = CBFRows(
+        A=np.array([[1.0, 0.0, 0.0]]), b=-one, h=one, gamma=one, drift=0.0 * one,
+        margin=0.0 * one, kind=np.array([OBSTACLE], np.int64), index=np.zeros(1, np.int64),
+    )  # fmt: skip
+    safety_filter.certify_pose(np.zeros(4), 0.0, np.zeros(3), rows)

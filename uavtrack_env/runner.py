@@ -83,6 +83,8 @@ def run_episode(
             flush=True,
         )
     start = time.perf_counter()
+    if callable(getattr(policy, "compile_kernels", None)):
+        policy.compile_kernels()  # one-off builds before the loop, not in mid-episode
     after_first = None  # wall clock after the first step, which holds the one-off builds
     bar = tqdm(range(steps), desc=label, disable=not progress, leave=False)
     for k in bar:
