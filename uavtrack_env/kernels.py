@@ -2,13 +2,15 @@
 
 The estimator, the rows and the CBF-QP's arrays are numba kernels compiled with ``cache=True``:
 the first process on a machine compiles them (about a minute here), later ones load them in a
-second or two. `kernels_cached` lets a long-running command say so before it seems to hang.
+second or two. `kernels_cached` lets a long-running command say so before it seems to hang;
+`compile_correction` builds the one kernel an episode would otherwise build late, at its
+first corrected action.
 """
 
 from __future__ import annotations
 
 from collections.abc import Iterable
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -17,6 +19,9 @@ from .onboard_pass import observe_frame_step, observe_pass, observe_step
 from .safety.cbf import OBSTACLE, CBFRows
 from .safety.qp_arrays import nominal_holds
 from .safety.qp_layers import certify_changed, certify_many
+
+if TYPE_CHECKING:
+    from .safety.shield import SafetyFilter
 
 
 def onboard_kernels() -> list[Any]:
@@ -44,11 +49,11 @@ def kernels_cached(kernels: Iterable[Any] | None = None) -> bool:
     return True
 
 
-def compile_correction(safety_filter: Any) -> None:
+def compile_correction(safety_filter: SafetyFilter) -> None:
     """Compile now (or load from numba's cache) the CBF-QP's correction kernel,
-    `qp_layers.certify_changed`, with the argument types of ``safety_filter``'s own calls (a
-    `SafetyFilter`). An episode otherwise compiles it at its first corrected action: on a
-    machine's first run, a pause of ~15 s in mid-episode. Certifies a hover that one
+    `qp_layers.certify_changed`, with the argument types of ``safety_filter``'s own calls. An
+    episode otherwise compiles it at its first corrected action: on a machine's first run, a
+    pause of ~13 s in mid-episode. Certifies a hover that one
     obstacle row rejects; the filter is stateless, so nothing else changes."""
     one = np.ones(1)
     rows = CBFRows(

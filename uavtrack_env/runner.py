@@ -61,9 +61,10 @@ def run_episode(
     ``timing_ms`` (medians per UAV-step: env, policy, and the policy's own stages if it keeps
     ``timings``), initial_conditions, ``violation_steps`` (agent-steps with each violation),
     ``violations_per_1000_steps``, ``agent_steps``, ``real_time_factor`` (simulated over wall
-    time after the first step; NaN for a one-step episode), ``startup_s`` (the first step's wall
-    time: one-off compiles, the cold solve) and ``shield_intervention_rate`` (fraction of
-    agent-steps whose action a shield or the expert's CBF-QP changed; None without either).
+    time after the first step; NaN for a one-step episode), ``startup_s`` (the wall time up to
+    the end of the first step: one-off compiles, the cold solve) and
+    ``shield_intervention_rate`` (fraction of agent-steps whose action a shield or the
+    expert's CBF-QP changed; None without either).
     ``theta_star`` (rad) is the occlusion angle the recorder compares theta of eq. (38) with;
     ``on_step(infos)`` is called after every step.
     """
