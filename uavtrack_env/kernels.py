@@ -53,8 +53,8 @@ def compile_correction(safety_filter: SafetyFilter) -> None:
     """Compile now (or load from numba's cache) the CBF-QP's correction kernel,
     `qp_layers.certify_changed`, with the argument types of ``safety_filter``'s own calls. An
     episode otherwise compiles it at its first corrected action: on a machine's first run, a
-    pause of ~13 s in mid-episode. Certifies a hover that one
-    obstacle row rejects; the filter is stateless, so nothing else changes."""
+    pause of ~13 s in mid-episode. Certifies a hover that one obstacle row rejects; the filter
+    is stateless, so nothing else changes."""
     one = np.ones(1)
     rows = CBFRows(
         A=np.array([[1.0, 0.0, 0.0]]), b=-one, h=one, gamma=one, drift=0.0 * one,

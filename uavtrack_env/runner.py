@@ -55,7 +55,9 @@ def run_episode(
     progress: bool = False,
     on_step: Callable[[dict[str, dict]], None] | None = None,
 ) -> EpisodeResult:
-    """Reset ``env`` with ``seed`` and run ``policy`` for at most ``steps`` steps.
+    """Reset ``env`` with ``seed`` and run ``policy`` for at most ``steps`` steps. A policy with
+    ``reset(layout)`` is reset to the episode's layout; one with ``compile_kernels()`` (the
+    expert) builds its one-off kernels before the loop, so that no build stalls the episode.
 
     ``metrics`` holds: scenario, init, seed, duration_s, ``uavs`` (`EpisodeRecorder.summary`),
     ``timing_ms`` (medians per UAV-step: env, policy, and the policy's own stages if it keeps
