@@ -199,13 +199,14 @@ def anchor_callback(
             if not self.model.policy.log_std.requires_grad:  # actor frozen (critic warm-up)
                 return
             env = self.model.get_env()
-            o = env.normalize_obs(obs) if isinstance(env, VecNormalize) else obs
-            x = torch.as_tensor(o, dtype=torch.float32)
+            normalize = env.normalize_obs if isinstance(env, VecNormalize) else None
             policy = self.model.policy
             total = 0.0
             for _ in range(steps):
-                idx = torch.randint(len(x), (batch_size,), generator=gen)
-                loss = cloning_loss(policy, x[idx], y[idx], scale)
+                idx = torch.randint(len(obs), (batch_size,), generator=gen)
+                o = obs[idx.numpy()]  # normalised per row: only the minibatch's rows
+                x = torch.as_tensor(normalize(o) if normalize else o, dtype=torch.float32)
+                loss = cloning_loss(policy, x, y[idx], scale)
                 self.opt.zero_grad()
                 loss.backward()
                 self.opt.step()
