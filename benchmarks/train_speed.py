@@ -1,12 +1,13 @@
 """Training throughput of shared-parameter PPO, with and without the CBF shield.
 
-    PYTHONPATH=. python benchmarks/train_speed.py [--timesteps 3072] [--repeats 3] [--n-envs 4]
+    PYTHONPATH=. python benchmarks/train_speed.py [--timesteps 12288] [--repeats 3] [--n-envs K]
+        [--n-epochs E] [--batch-size B] [--net-arch 128,128]
 
-Per configuration, the median over repeats of: agent-steps/s of ``PPO.learn`` (rollouts + updates,
-SB3 defaults of train.ppo but n_epochs as given) and of stepping train.ppo's VecEnv alone with
-random actions (collection only: `VectorSharedPolicyVecEnv`, shielded by `VectorCBFShield`),
-plus the shield's slowdown ratio. One torch thread; random
-worlds, integrator dynamics, 1200-step episodes (as train.ppo).
+Per configuration, the median over repeats of: agent-steps/s of ``PPO.learn`` (rollouts + updates
+of the model `train.ppo` builds, with its defaults unless given) and of stepping train.ppo's
+VecEnv alone with random actions (collection only: `VectorSharedPolicyVecEnv`, shielded by
+`VectorCBFShield`), plus the shield's slowdown ratio. One torch thread; random worlds,
+integrator dynamics, 1200-step episodes (as train.ppo).
 """
 
 from __future__ import annotations
@@ -17,22 +18,23 @@ import statistics
 import tempfile
 import time
 import warnings
+from typing import Any
 
 import numpy as np
 
-from train.ppo import make_args, make_vec_env
+from train.ppo import Args, make_args, make_vec_env, model_and_env
 
 
-def vec_rate(shield: bool, steps: int, n_envs: int, seed: int) -> float:
+def ppo_args(shield: bool, seed: int, **given: Any) -> Args:
+    """train.ppo's arguments: its defaults but for the ones ``given`` (None: the default)."""
+    out = tempfile.mkdtemp(prefix="uavtrack-bench-")
+    chosen = {k: v for k, v in given.items() if v is not None}
+    return make_args(out=out, shield=shield, seed=seed, **chosen)
+
+
+def vec_rate(shield: bool, steps: int, seed: int, **given: Any) -> float:
     """Agent-steps/s of the VecEnv alone (random actions)."""
-    args = make_args(
-        out=tempfile.mkdtemp(prefix="uavtrack-bench-"),
-        shield=shield,
-        n_envs=n_envs,
-        seed=seed,
-        normalize=False,
-    )
-    vec = make_vec_env(args)
+    vec = make_vec_env(ppo_args(shield, seed, normalize=False, **given))
     vec.reset()
     rng = np.random.default_rng(seed)
     vector_steps = max(1, steps // vec.num_envs)
@@ -44,29 +46,13 @@ def vec_rate(shield: bool, steps: int, n_envs: int, seed: int) -> float:
     return rate
 
 
-def learn_rate(
-    shield: bool, steps: int, n_envs: int, n_epochs: int, seed: int
-) -> tuple[float, float]:
+def learn_rate(shield: bool, steps: int, seed: int, **given: Any) -> tuple[float, float]:
     """Agent-steps/s of PPO.learn (collection and updates), and the share of its time spent in
     the updates (`PPO.train`)."""
     import torch
-    from stable_baselines3 import PPO
 
     torch.set_num_threads(1)
-    args = make_args(
-        out=tempfile.mkdtemp(prefix="uavtrack-bench-"), shield=shield, n_envs=n_envs, seed=seed
-    )
-    vec = make_vec_env(args)
-    model = PPO(
-        "MlpPolicy",
-        vec,
-        n_steps=args.n_steps,
-        batch_size=args.batch_size,
-        n_epochs=n_epochs,
-        policy_kwargs={"net_arch": {"pi": [128, 128], "vf": [128, 128]}},
-        seed=seed,
-        device="cpu",
-    )
+    model, vec = model_and_env(ppo_args(shield, seed, **given))
     updates = 0.0
     train = model.train
 
@@ -86,26 +72,28 @@ def learn_rate(
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
-    ap.add_argument("--timesteps", type=int, default=3072, help="agent-steps per repeat")
+    ap.add_argument("--timesteps", type=int, default=36_864, help="agent-steps per repeat")
     ap.add_argument("--repeats", type=int, default=3)
-    ap.add_argument("--n-envs", type=int, default=4, help="env copies (rows = copies x 3)")
-    ap.add_argument("--n-epochs", type=int, default=10)
+    ap.add_argument("--n-envs", type=int, help="worlds (rows = worlds x 3; train.ppo's default)")
+    ap.add_argument("--n-epochs", type=int, help="PPO epochs per rollout (train.ppo's default)")
+    ap.add_argument("--batch-size", type=int, help="PPO minibatch (train.ppo's default)")
+    ap.add_argument("--net-arch", help="hidden sizes of pi and vf (train.ppo's default)")
     args = ap.parse_args()
+    given = {k: getattr(args, k) for k in ("n_envs", "n_epochs", "batch_size", "net_arch")}
+    chosen = ppo_args(False, 0, **given)
     warnings.simplefilter("ignore")
     print(
         f"machine: {platform.processor() or platform.machine()}, python "
-        f"{platform.python_version()}; {args.n_envs} copies x 3 UAVs, "
+        f"{platform.python_version()}; {chosen.n_envs} worlds x 3 UAVs, PPO minibatch "
+        f"{chosen.batch_size}, {chosen.n_epochs} epochs, net {chosen.net_arch}; "
         f"{args.timesteps} agent-steps, median of {args.repeats}"
     )
     res, shares = {}, {}
     for shield in (False, True):
-        learned = [
-            learn_rate(shield, args.timesteps, args.n_envs, args.n_epochs, s)
-            for s in range(args.repeats)
-        ]
+        learned = [learn_rate(shield, args.timesteps, s, **given) for s in range(args.repeats)]
         res[shield] = (
             statistics.median(
-                vec_rate(shield, args.timesteps, args.n_envs, s) for s in range(args.repeats)
+                vec_rate(shield, args.timesteps, s, **given) for s in range(args.repeats)
             ),
             statistics.median(rate for rate, _ in learned),
         )
@@ -122,7 +110,7 @@ def main() -> None:
         )
     print(
         "ceiling: PPO.learn agent-steps/s if collecting cost nothing (the updates alone, "
-        f"{args.n_epochs} epochs, one torch thread)"
+        f"{chosen.n_epochs} epochs, one torch thread)"
     )
     (v0, l0), (v1, l1) = res[False], res[True]
     print(f"{'shield cost':<14} {v0 / v1:>20.2f}x {l0 / l1:>23.2f}x  (slowdown)")

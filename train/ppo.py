@@ -356,7 +356,7 @@ def train(args: Args):
     ckdir = out / "checkpoints"
     ckdir.mkdir(parents=True, exist_ok=True)
     previous = _previous_calls(args)
-    model, vec = _model_and_env(args, previous.get("lagrangian_lambda", 0.0))
+    model, vec = model_and_env(args, previous.get("lagrangian_lambda", 0.0))
     bc_stats: dict = {}
     demos = demonstrations(args) if args.bc_episodes > 0 else None  # loaded once
     if args.resume is None and demos is not None:
@@ -474,8 +474,8 @@ def _wrapper(vec, kind: type):
     return vec
 
 
-def _model_and_env(args: Args, lambda_init: float):
-    """The VecEnv and the PPO model: the last checkpoint of ``--resume`` (with its VecNormalize
+def model_and_env(args: Args, lambda_init: float = 0.0):
+    """The PPO model and its VecEnv: the last checkpoint of ``--resume`` (with its VecNormalize
     statistics and multiplier), else a new model with the command line's hyperparameters."""
     from stable_baselines3 import PPO
     from stable_baselines3.common.vec_env import VecNormalize
