@@ -16,6 +16,7 @@ from __future__ import annotations
 import functools
 import multiprocessing
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -32,11 +33,16 @@ def collect(
     progress: bool = True,
     config: ExpertConfig | str | None = None,
     workers: int = 1,
+    learner: Path | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Expert rollouts of a full episode each on ``make_env()`` worlds seeded ``seed + e``;
     ``config`` is the expert's `ExpertConfig` or preset name (default 'tuned'). With
     ``workers`` > 1 the episodes run in that many processes (``make_env`` must then be
     picklable, e.g. a `functools.partial`); the arrays are the same as with one.
+
+    With ``learner`` (a ``train.ppo`` run directory) the learner's policy flies, through
+    `CBFShield` if it was trained shielded, and the expert only labels the states it visits
+    (DAgger, Ross et al. 2011): the expert's actions on the learner's own state distribution.
 
     Returns (observations (N, n_obs), actions (N, 4)), float32, one row per live agent-step.
     """
@@ -45,14 +51,15 @@ def collect(
     if workers < 1:
         raise ValueError(f"workers must be >= 1, got {workers}")
     seeds = range(seed, seed + episodes)
-    bar = tqdm(total=episodes, desc="expert demos", unit="episode", disable=not progress)
+    desc = "expert demos" if learner is None else "expert labels (DAgger)"
+    bar = tqdm(total=episodes, desc=desc, unit="episode", disable=not progress)
     done: list[tuple[list, list]] = []
     if workers == 1:
         for s in seeds:
-            done.append(_episode(make_env, config, s, threads=None))
+            done.append(_episode(make_env, config, s, threads=None, learner=learner))
             bar.update()
     else:
-        run = functools.partial(_episode, make_env, config, threads=1)
+        run = functools.partial(_episode, make_env, config, threads=1, learner=learner)
         with multiprocessing.get_context("spawn").Pool(min(workers, episodes)) as pool:
             for pairs in pool.imap(run, seeds):  # in seed order
                 done.append(pairs)
@@ -64,19 +71,30 @@ def collect(
 
 
 def _episode(
-    make_env: Callable[[], Any], config: ExpertConfig | str | None, seed: int, threads: int | None
+    make_env: Callable[[], Any],
+    config: ExpertConfig | str | None,
+    seed: int,
+    threads: int | None,
+    learner: Path | None = None,
 ) -> tuple[list, list]:
-    """One expert episode's (observations, actions) of every live agent-step."""
-    env = make_env()
+    """One episode's (observations, expert actions) of every live agent-step; the expert flies
+    unless a ``learner`` run does (`collect`)."""
+    env, driver = make_env(), None
+    if learner is not None:
+        from baselines.compare import load_any_run
+        from uavtrack_env.wrappers import CBFShield
+
+        _, shielded, driver = load_any_run(Path(learner))
+        env = CBFShield(env, config) if shielded else env
     obs, infos = env.reset(seed=seed)
-    expert = ExpertPolicy.from_env(env, config, threads)
+    expert = ExpertPolicy.from_env(env.unwrapped, config, threads)
     obs_rows, act_rows = [], []
     while env.agents:
         actions = expert(obs, infos)
         for agent, a in actions.items():
             obs_rows.append(obs[agent])
             act_rows.append(a)
-        obs, _, _, _, infos = env.step(actions)
+        obs, _, _, _, infos = env.step(actions if driver is None else driver(obs, infos))
     expert.close()
     env.close()
     return obs_rows, act_rows
