@@ -117,12 +117,15 @@ def run_policy_episode(
 
 
 def eval_worlds(
-    scenarios: list[str], seeds: int, first_seed: int = 0
+    scenarios: list[str], seeds: int, first_seed: int = 0, paper_episodes: int = 1
 ) -> list[tuple[str, int, int]]:
     """(scenario, init, seed) of the evaluation set: both Table VI rows of each paper scenario
-    (seed ``first_seed``), then ``seeds`` random worlds with seeds first_seed + 1000 + k (kept
-    apart from training's small seeds)."""
-    worlds = [(s, i, first_seed) for s in scenarios for i in (0, 1)]
+    (``paper_episodes`` episodes, seeds first_seed + e: the sensors' noise and the radio's
+    drops), then ``seeds`` random worlds with seeds first_seed + 1000 + k (kept apart from
+    training's small seeds)."""
+    worlds = [
+        (s, i, first_seed + e) for s in scenarios for i in (0, 1) for e in range(paper_episodes)
+    ]
     return worlds + [("random", 0, first_seed + 1000 + k) for k in range(seeds)]
 
 
@@ -223,6 +226,12 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     )
     ap.add_argument("--seeds", type=int, default=20, help="number of seeded random worlds")
     ap.add_argument("--scenarios", nargs="*", default=["A", "B", "C"], choices=["A", "B", "C"])
+    ap.add_argument(
+        "--paper-episodes",
+        type=int,
+        default=1,
+        help="episodes per paper world, seeds 0, 1, ... (the sensors' noise, the radio's drops)",
+    )
     ap.add_argument("--duration", type=float, default=60.0, help="episode length in s")
     ap.add_argument("--dynamics", default="integrator", choices=["integrator", "lag"])
     ap.add_argument("--no-expert", action="store_true", help="skip the expert (slowest)")
@@ -232,6 +241,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     args = ap.parse_args(argv)
     if args.seeds < 0 or not math.isfinite(args.duration) or args.duration <= 0:
         ap.error("--seeds must be >= 0 and --duration > 0")
+    if args.paper_episodes < 1:
+        ap.error(f"--paper-episodes must be >= 1, got {args.paper_episodes}")
     return args
 
 
@@ -308,7 +319,7 @@ def _run_entrants(
 ) -> list[dict]:
     """One episode per entrant and evaluation world; a shielded entrant gets the expert's
     CBF-QP."""
-    worlds = eval_worlds(args.scenarios, args.seeds)
+    worlds = eval_worlds(args.scenarios, args.seeds, paper_episodes=args.paper_episodes)
     runs = []
     bar = tqdm(total=len(worlds) * len(entrants), desc="compare", disable=args.no_progress)
     for label, shielded, make_policy in entrants:
@@ -344,8 +355,9 @@ def _header(args: argparse.Namespace) -> str:
             f"({info.get('bc_episodes')} episodes), no PPO step ({args.cloned})"
         )
     return (
-        f"Episodes of {args.duration:g} s, dynamics {args.dynamics}; random worlds: "
-        f"{args.seeds} seeds.\n" + "".join(f"- {b}\n" for b in budget)
+        f"Episodes of {args.duration:g} s, dynamics {args.dynamics}; paper worlds: "
+        f"{args.paper_episodes} seed(s) each; random worlds: {args.seeds} seeds.\n"
+        + "".join(f"- {b}\n" for b in budget)
     )
 
 

@@ -150,3 +150,13 @@ def test_compare_cli_and_merge(tmp_path):
     assert "| expert | A0 | 1 |" in table and "| expert | random | 2 |" in table
     with pytest.raises(SystemExit):
         compare.main([*common, "--no-expert", "--out", str(tmp_path / "c")])
+    twice = compare.main(
+        [*common[:3], "--seeds", "0", "--scenarios", "A", "--paper-episodes", "2",
+         "--out", str(tmp_path / "d")]
+    )  # fmt: skip
+    assert [(m["scenario"], m["init"]) for m in twice] == [("A", 0)] * 2 + [("A", 1)] * 2
+    first, second = (m["uavs"]["uav_0"]["rms_u_px"] for m in twice[:2])
+    assert first != second  # other noise draws
+    assert "| expert | A0 | 2 |" in (tmp_path / "d" / "compare.md").read_text()
+    with pytest.raises(SystemExit):
+        compare.main([*common, "--paper-episodes", "0", "--out", str(tmp_path / "e")])
