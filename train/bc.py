@@ -81,13 +81,8 @@ def _episode(
     unless a ``learner`` run does (`collect`)."""
     env, driver = make_env(), None
     if learner is not None:
-        import torch
-
         from baselines.compare import load_any_run
         from uavtrack_env.wrappers import CBFShield
-
-        if threads == 1:  # a worker process: torch's idle threads would spin on its neighbours
-            torch.set_num_threads(1)
 
         _, shielded, driver = load_any_run(Path(learner))
         env = CBFShield(env, config) if shielded else env
