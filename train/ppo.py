@@ -29,10 +29,7 @@ and a collision ends that UAV's episode only.
 Warm start from the expert (``--bc-episodes N``): N expert episodes are recorded (in
 ``--bc-workers`` processes; cached in ``--bc-demos``), the actor is fitted to them (checkpoint
 0), the critic alone trains for ``--value-warmup`` steps, then PPO fine-tunes, optionally with
-``--bc-anchor`` cloning steps after every update. DAgger (``--dagger-from RUN
---dagger-episodes N``): RUN's policy flies N more episodes (shielded if it was trained so) while
-the expert labels the states it visits; the labels join the demonstrations (cached in
-``--dagger-demos``). The recipe of docs/results/rl-training.md:
+``--bc-anchor`` cloning steps after every update. The recipe of docs/results/rl-training.md:
 
     python -m train.ppo --shield --n-envs 16 --bc-episodes 200 --bc-anchor 10 \
         --value-warmup 100000 --target-kl 0.01 --learning-rate 5e-5 --log-std-init -3.5 \
