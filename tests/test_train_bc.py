@@ -49,33 +49,6 @@ def test_collect_records_the_experts_actions():
 
 
 @pytest.mark.slow
-def test_dagger_labels_the_learners_states_with_the_experts_actions(tmp_path):
-    """With a learner, the shielded learner flies and the expert labels: replayed by hand, the
-    observations follow the learner's actions and the labels are the expert's on them."""
-    from uavtrack_env.wrappers import CBFShield
-
-    run = tmp_path / "run"
-    ppo.main(["--shield", "--timesteps", "384", "--out", str(run), *SMOKE, "--no-evaluate"])
-    obs, labels = bc.collect(_small_world, episodes=1, seed=5, progress=False, learner=run)
-    assert obs.shape[0] == labels.shape[0] == 40 * 3
-    learner, _ = load_run(run)
-    env = CBFShield(_small_world(), "tuned")
-    o, infos = env.reset(seed=5)
-    expert = ExpertPolicy.from_env(env.unwrapped)
-    differs = False
-    for k in range(40):
-        acts, flown = expert(o, infos), learner(o, infos)
-        for i, a in enumerate(env.agents):
-            np.testing.assert_array_equal(obs[3 * k + i], o[a])
-            np.testing.assert_array_equal(labels[3 * k + i], acts[a])
-            differs |= not np.allclose(acts[a], flown[a], atol=1e-3)
-        o, _, _, _, infos = env.step(flown)
-    assert differs  # the learner's actions, not the labels, moved the UAVs
-    demos = bc.collect(_small_world, episodes=1, seed=5, progress=False)
-    assert not np.array_equal(demos[0], obs)  # the expert's own flight visits other states
-
-
-@pytest.mark.slow
 def test_collect_in_processes_records_the_same_demonstrations():
     """Two worker processes give the pairs of one, in the same order (episodes by seed)."""
     make = functools.partial(uavtrack_v0.parallel_env, scenario="random", max_cycles=30)

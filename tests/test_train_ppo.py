@@ -94,14 +94,6 @@ def test_bad_arguments(tmp_path):
         ppo.last_checkpoint(tmp_path)
     with pytest.raises(ValueError, match="--bc-workers must be >= 1"):
         ppo.parse_args(["--out", str(tmp_path), "--bc-workers", "0"])
-    out = ["--out", str(tmp_path), "--bc-episodes", "2"]
-    for dagger in (["--dagger-episodes", "3"], ["--dagger-from", str(tmp_path)]):
-        with pytest.raises(ValueError, match=r"--dagger-from RUN .* and --dagger-episodes"):
-            ppo.parse_args(out + dagger)
-    with pytest.raises(ValueError, match=r"with --bc-episodes .*--bc-episodes 0"):
-        ppo.parse_args(
-            ["--out", str(tmp_path), "--dagger-from", str(tmp_path), "--dagger-episodes", "1"]
-        )
 
 
 def dive(obs, infos):

@@ -16,7 +16,6 @@ from __future__ import annotations
 import functools
 import multiprocessing
 from collections.abc import Callable
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -33,16 +32,11 @@ def collect(
     progress: bool = True,
     config: ExpertConfig | str | None = None,
     workers: int = 1,
-    learner: Path | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Expert rollouts of a full episode each on ``make_env()`` worlds seeded ``seed + e``;
     ``config`` is the expert's `ExpertConfig` or preset name (default 'tuned'). With
     ``workers`` > 1 the episodes run in that many processes (``make_env`` must then be
     picklable, e.g. a `functools.partial`); the arrays are the same as with one.
-
-    With ``learner`` (a ``train.ppo`` run directory) the learner's policy flies, through
-    `CBFShield` if it was trained shielded, and the expert only labels the states it visits
-    (DAgger, Ross et al. 2011): the expert's actions on the learner's own state distribution.
 
     Returns (observations (N, n_obs), actions (N, 4)), float32, one row per live agent-step.
     """
@@ -51,15 +45,14 @@ def collect(
     if workers < 1:
         raise ValueError(f"workers must be >= 1, got {workers}")
     seeds = range(seed, seed + episodes)
-    desc = "expert demos" if learner is None else "expert labels (DAgger)"
-    bar = tqdm(total=episodes, desc=desc, unit="episode", disable=not progress)
+    bar = tqdm(total=episodes, desc="expert demos", unit="episode", disable=not progress)
     done: list[tuple[list, list]] = []
     if workers == 1:
         for s in seeds:
-            done.append(_episode(make_env, config, s, threads=None, learner=learner))
+            done.append(_episode(make_env, config, s, threads=None))
             bar.update()
     else:
-        run = functools.partial(_episode, make_env, config, threads=1, learner=learner)
+        run = functools.partial(_episode, make_env, config, threads=1)
         with multiprocessing.get_context("spawn").Pool(min(workers, episodes)) as pool:
             for pairs in pool.imap(run, seeds):  # in seed order
                 done.append(pairs)
@@ -71,30 +64,19 @@ def collect(
 
 
 def _episode(
-    make_env: Callable[[], Any],
-    config: ExpertConfig | str | None,
-    seed: int,
-    threads: int | None,
-    learner: Path | None = None,
+    make_env: Callable[[], Any], config: ExpertConfig | str | None, seed: int, threads: int | None
 ) -> tuple[list, list]:
-    """One episode's (observations, expert actions) of every live agent-step; the expert flies
-    unless a ``learner`` run does (`collect`)."""
-    env, driver = make_env(), None
-    if learner is not None:
-        from baselines.compare import load_any_run
-        from uavtrack_env.wrappers import CBFShield
-
-        _, shielded, driver = load_any_run(Path(learner))
-        env = CBFShield(env, config) if shielded else env
+    """One expert episode's (observations, actions) of every live agent-step."""
+    env = make_env()
     obs, infos = env.reset(seed=seed)
-    expert = ExpertPolicy.from_env(env.unwrapped, config, threads)
+    expert = ExpertPolicy.from_env(env, config, threads)
     obs_rows, act_rows = [], []
     while env.agents:
         actions = expert(obs, infos)
         for agent, a in actions.items():
             obs_rows.append(obs[agent])
             act_rows.append(a)
-        obs, _, _, _, infos = env.step(actions if driver is None else driver(obs, infos))
+        obs, _, _, _, infos = env.step(actions)
     expert.close()
     env.close()
     return obs_rows, act_rows

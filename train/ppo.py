@@ -80,8 +80,6 @@ BC_STATS = ("bc_samples", "bc_val_loss_first_epoch", "bc_val_loss")
 """What `train.bc.pretrain` reports (kept in args.json across ``--resume``)."""
 BC_SEED = 50_000
 """Demonstration worlds are seeded BC_SEED + seed + episode, apart from the evaluation seeds."""
-DAGGER_SEED = 60_000
-"""DAgger's worlds are seeded DAGGER_SEED + seed + episode, apart from the demonstrations'."""
 
 
 @dataclass
@@ -143,18 +141,6 @@ class Args:
     bc_demos: Path | None = field(
         default=None,
         metadata={"help": "demonstrations .npz to reuse if it exists, else written there"},
-    )
-    dagger_from: Path | None = field(
-        default=None,
-        metadata={"help": "train.ppo run whose policy flies while the expert labels (DAgger)"},
-    )
-    dagger_episodes: int = field(
-        default=0,
-        metadata={"help": "episodes of --dagger-from labelled by the expert, added to the demos"},
-    )
-    dagger_demos: Path | None = field(
-        default=None,
-        metadata={"help": "the DAgger labels' .npz to reuse if it exists, else written there"},
     )
     bc_anchor: int = field(
         default=0,
@@ -250,13 +236,6 @@ def make_args(**given: Any) -> Args:
     for name in positive:
         if int(getattr(args, name)) < 1:
             raise ValueError(f"--{name.replace('_', '-')} must be >= 1")
-    dagger = args.dagger_episodes > 0
-    if dagger != (args.dagger_from is not None) or (dagger and args.bc_episodes < 1):
-        raise ValueError(
-            "DAgger takes --dagger-from RUN (a train.ppo run directory) and --dagger-episodes "
-            f"N >= 1 together, with --bc-episodes (got --dagger-from {args.dagger_from}, "
-            f"--dagger-episodes {args.dagger_episodes}, --bc-episodes {args.bc_episodes})"
-        )
     if args.bc_anchor > 0 and args.bc_episodes < 1:
         raise ValueError("--bc-anchor needs demonstrations: set --bc-episodes")
     if set(args.eval_scenarios) - set("ABC"):
@@ -346,31 +325,18 @@ def save_checkpoint(model, vec, ckdir: Path) -> None:
 
 # ---------------------------------------------------------------------- train
 def demonstrations(args: Args) -> tuple[np.ndarray, np.ndarray]:
-    """The expert's (observations, actions) on unshielded training worlds, cached in a .npz;
-    with ``--dagger-episodes``, followed by the expert's labels of ``--dagger-from``'s states."""
-    obs, actions = _recorded(args.bc_demos or args.out / "demos.npz", args, args.bc_episodes)
-    if args.dagger_episodes > 0:
-        path = args.dagger_demos or args.out / "dagger.npz"
-        more = _recorded(path, args, args.dagger_episodes, args.dagger_from)
-        obs, actions = np.concatenate([obs, more[0]]), np.concatenate([actions, more[1]])
-    return obs, actions
-
-
-def _recorded(
-    path: Path, args: Args, episodes: int, learner: Path | None = None
-) -> tuple[np.ndarray, np.ndarray]:
-    """`bc.collect`'s arrays from ``path`` if it exists, else recorded and written there."""
+    """The expert's (observations, actions) on unshielded training worlds, cached in a .npz."""
     from train import bc
 
-    path = Path(path)
+    path = Path(args.bc_demos or args.out / "demos.npz")
     if path.exists():
         with np.load(path) as d:
             print(f"behaviour cloning: {len(d['obs'])} samples from {path}")
             return d["obs"], d["actions"]
-    seed = (BC_SEED if learner is None else DAGGER_SEED) + args.seed
+    make = env_fn(args)
     obs, actions = bc.collect(
-        env_fn(args), episodes, seed, args.progress, expert_settings(args), args.bc_workers,
-        learner,
+        make, args.bc_episodes, BC_SEED + args.seed, args.progress, expert_settings(args),
+        args.bc_workers,
     )  # fmt: skip
     path.parent.mkdir(parents=True, exist_ok=True)
     np.savez_compressed(path, obs=obs, actions=actions)
