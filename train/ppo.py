@@ -99,7 +99,9 @@ class Args:
     resume: Path | None = field(
         default=None, metadata={"help": "continue the run in DIR from its last checkpoint"}
     )
-    n_envs: int = field(default=4, metadata={"help": "worlds (rows = worlds x n_uavs)"})
+    n_envs: int = field(
+        default=16, metadata={"help": "worlds in one batched step (rows = worlds x n_uavs)"}
+    )
     n_uavs: int = field(default=TrainingWorld.n_uavs, metadata=_WORLD_HELP["n_uavs"])
     max_cycles: int = field(default=TrainingWorld.max_cycles, metadata=_WORLD_HELP["max_cycles"])
     terminate_on_collision: str = field(
