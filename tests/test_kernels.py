@@ -84,29 +84,31 @@ run_episode(env, expert, seed=0, steps=20, progress=True)
 
 
 @pytest.mark.slow
-def test_the_expert_compiles_its_correction_kernel_before_the_episode():
+def test_the_expert_compiles_its_filter_kernels_before_the_episode():
     """`ExpertPolicy.compile_kernels` (called by the runner before its loop) gives the
-    CBF-QP's correction kernel the argument types of the closed loop's own corrections: an
-    A0 episode with corrected actions adds no second compiled signature (fresh process)."""
+    CBF-QP's correction and plan-row kernels the argument types of the closed loop's own calls:
+    an A0 episode with corrected actions adds no second compiled signature (fresh process)."""
     script = """
 from baselines.evaluate import world_kwargs
 from uavtrack_env import uavtrack_v0
 from uavtrack_env.expert import ExpertPolicy
+from uavtrack_env.safety.qp_arrays import nearest_camera_rows
 from uavtrack_env.safety.qp_layers import certify_changed
 env = uavtrack_v0.parallel_env(**world_kwargs("A", 0, 400, dynamics="lag", noise=True,
                                               render=False))
 obs, infos = env.reset(seed=0)
 expert = ExpertPolicy.from_env(env, "tuned", threads=1)
-assert not certify_changed.signatures
+assert not certify_changed.signatures and not nearest_camera_rows.signatures
 expert.compile_kernels()
-compiled = list(certify_changed.signatures)
+compiled = list(certify_changed.signatures) + list(nearest_camera_rows.signatures)
 corrected = 0
 while env.agents:
     obs, _, _, _, infos = env.step(expert(obs, infos))
     corrected += sum(bool(s.last_report and s.last_report.active) for s in expert.planners.values())
-print(len(compiled), corrected, list(certify_changed.signatures) == compiled)
+now = list(certify_changed.signatures) + list(nearest_camera_rows.signatures)
+print(len(compiled), corrected, now == compiled)
 """
     run = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True)
     assert run.returncode == 0, run.stderr[-2000:]
     n_compiled, corrected, same = run.stdout.split()[-3:]
-    assert n_compiled == "1" and int(corrected) > 0 and same == "True", run.stdout
+    assert n_compiled == "2" and int(corrected) > 0 and same == "True", run.stdout

@@ -17,6 +17,7 @@ from uavtrack_env.geometry import cam_to_world_vec, world_to_cam_vec
 from uavtrack_env.presets import PRESETS
 from uavtrack_env.safety import SafetyContext, SafetyFilter
 from uavtrack_env.safety.config import CBFConfig
+from uavtrack_env.safety.qp_arrays import nearest_camera_rows
 
 REF = np.array([0.0, 0.0, 0.1, math.pi / 2])
 W_MAX = ControlLimits().scale[3]
@@ -169,6 +170,35 @@ def test_camera_rows_are_the_normalised_global_rows_nearest_first() -> None:
     u2, r2 = shield.certify(u_nom, ctx, rows)
     np.testing.assert_array_equal(u1, u2)
     assert r1.status == r2.status
+
+
+def test_nearest_camera_rows_drop_zero_and_implied_rows_and_keep_ties_in_order() -> None:
+    """The kernel against its numpy formulation: zero rows and rows the speed ball implies
+    (bn >= alpha_v) are dropped, ties keep the rows' order, at most k come back."""
+    yaw, alpha_v = 0.4, 2.0
+    A = np.array(
+        [
+            [0.0, 0.0, 0.0],  # zero row
+            [1.0, 0.0, 0.0],
+            [0.0, 2.0, 0.0],  # the same bn as the row above: a tie
+            [0.0, 0.0, -1.0],
+            [3.0, 4.0, 0.0],  # bn = 15 / 5 >= alpha_v: implied by the ball
+            [0.5, -0.5, 1.0],
+        ]
+    )
+    b = np.array([-1.0, 0.5, 1.0, -0.3, 15.0, 0.2])
+    R = np.stack([cam_to_world_vec(e, yaw) for e in np.eye(3)], axis=1)
+    Ac = A @ R
+    n = np.linalg.norm(Ac, axis=1)
+    ok = n >= 1e-12
+    bn_all = np.where(ok, b / np.where(ok, n, 1.0), np.inf)
+    order = [j for j in np.argsort(bn_all, kind="stable") if ok[j] and bn_all[j] < alpha_v]
+    assert order == [3, 5, 1, 2]  # the tie (rows 1 and 2) in row order
+    for k in (1, 3, 10):
+        An, bn = nearest_camera_rows(A, b, yaw, alpha_v, k)
+        expect = order[:k]
+        np.testing.assert_allclose(An, Ac[expect] / n[expect, None], atol=1e-14)
+        np.testing.assert_allclose(bn, bn_all[expect], atol=1e-14)
 
 
 def test_fit_ignores_the_settle_time() -> None:

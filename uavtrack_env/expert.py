@@ -19,7 +19,7 @@ from .config import DT, EnvConfig
 from .control import NMPC, NMPCResult
 from .control.viewpoint import ViewpointPlanner
 from .geometry import world_to_cam_vec
-from .kernels import compile_correction
+from .kernels import compile_filter_kernels
 from .onboard import observe_team, onboard_team
 from .presets import ExpertConfig, expert_config
 from .safety import ShieldReport
@@ -135,10 +135,10 @@ class ExpertPolicy:
         return {agent: self._record(plan) for agent, plan in zip(agents, plans, strict=True)}
 
     def compile_kernels(self) -> None:
-        """Compile the CBF-QP's correction kernel now rather than at the first corrected
-        action (`kernels.compile_correction`); nothing without the CBF."""
+        """Compile the CBF-QP's correction and plan-row kernels now rather than in the episode
+        (`kernels.compile_filter_kernels`); nothing without the CBF."""
         if self.use_cbf:
-            compile_correction(self.onboard[self.agent_names[0]].filter)
+            compile_filter_kernels(self.onboard[self.agent_names[0]].filter)
 
     def close(self) -> None:
         """Stop the planning threads (a later call starts them again)."""

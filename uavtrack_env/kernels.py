@@ -3,8 +3,8 @@
 The estimator, the rows and the CBF-QP's arrays are numba kernels compiled with ``cache=True``:
 the first process on a machine compiles them (about a minute here), later ones load them in a
 second or two. `kernels_cached` lets a long-running command say so before it seems to hang;
-`compile_correction` builds the one kernel an episode would otherwise build late, at its
-first corrected action.
+`compile_filter_kernels` builds the kernels an episode would otherwise build late: the
+correction at its first corrected action, the NMPC's plan rows at its first estimate.
 """
 
 from __future__ import annotations
@@ -49,15 +49,17 @@ def kernels_cached(kernels: Iterable[Any] | None = None) -> bool:
     return True
 
 
-def compile_correction(safety_filter: SafetyFilter) -> None:
-    """Compile now (or load from numba's cache) the CBF-QP's correction kernel,
-    `qp_layers.certify_changed`, with the argument types of ``safety_filter``'s own calls. An
-    episode otherwise compiles it at its first corrected action: on a machine's first run, a
-    pause of ~13 s in mid-episode. Certifies a hover that one obstacle row rejects; the filter
-    is stateless, so nothing else changes."""
+def compile_filter_kernels(safety_filter: SafetyFilter) -> None:
+    """Compile now (or load from numba's cache) the kernels ``safety_filter`` calls late in an
+    episode, with the argument types of its own calls: the CBF-QP's correction,
+    `qp_layers.certify_changed` (at the first corrected action: on a machine's first run, a
+    pause of ~13 s in mid-episode), and the NMPC's plan rows, `qp_arrays.nearest_camera_rows`.
+    Certifies a hover that one obstacle row rejects; the filter is stateless, so nothing else
+    changes."""
     one = np.ones(1)
     rows = CBFRows(
         A=np.array([[1.0, 0.0, 0.0]]), b=-one, h=one, gamma=one, drift=0.0 * one,
         margin=0.0 * one, kind=np.array([OBSTACLE], np.int64), index=np.zeros(1, np.int64),
     )  # fmt: skip
     safety_filter.certify_pose(np.zeros(4), 0.0, np.zeros(3), rows)
+    safety_filter.camera_rows(rows, 0.0, 1)

@@ -48,6 +48,36 @@ def camera_rows(A, b, kind, yaw, alpha_v, prune):  # pragma: no cover (compiled)
 
 
 @numba.njit(cache=True)
+def nearest_camera_rows(A, b, yaw, alpha_v, k):  # pragma: no cover (compiled)
+    """Up to ``k`` rows ``A V^g <= b`` as unit rows on the camera-frame velocity (as in
+    `camera_rows`), those closest to active first (smallest bn, ties in row order); zero rows
+    and the rows the speed ball implies (``bn >= alpha_v``) are dropped: (An, bn)."""
+    c, s = math.cos(yaw), math.sin(yaw)
+    m = A.shape[0]
+    An = np.empty((m, 3))
+    bn = np.empty(m)
+    n = 0
+    for j in range(m):
+        a0 = s * A[j, 0] - c * A[j, 1]
+        a1 = -A[j, 2]
+        a2 = c * A[j, 0] + s * A[j, 1]
+        norm = math.sqrt(a0 * a0 + a1 * a1 + a2 * a2)
+        if norm < 1e-12:
+            continue
+        An[n, 0], An[n, 1], An[n, 2] = a0 / norm, a1 / norm, a2 / norm
+        bn[n] = b[j] / norm
+        n += 1
+    order = np.argsort(bn[:n], kind="mergesort")[:k]  # stable
+    kept = 0
+    for i in range(order.shape[0]):
+        if bn[order[i]] < alpha_v:
+            order[kept] = order[i]
+            kept += 1
+    order = order[:kept]
+    return An[order], bn[order]
+
+
+@numba.njit(cache=True)
 def qp_problem(v_hat, An, bn, weights, lb3, ub3, slack_reg):  # pragma: no cover (compiled)
     """``min 1/2 ||v - v_hat||^2 + sum w_j s_j`` s.t. ``An v - s <= bn``, box, s >= 0, one slack
     per row with a weight > 0, over x = [v, s], in daqp's form: (H, f, G, [bu, bl], sense) with

@@ -77,6 +77,7 @@ from uavtrack_env.safety.qp_arrays import (
     INF,
     family_lows,
     meets,
+    nearest_camera_rows,
     nominal_holds,
     outcome,
     qp_problem,
@@ -95,14 +96,6 @@ is unavailable, `daqp_native.AVAILABLE`). All are tested to give the same answer
 _PRIMAL_TOL = 1e-10
 """Solver feasibility tolerance (m/s on unit rows). daqp's default 1e-6 lets h creep ~1e-6
 below 0 over many steps at an active barrier; 1e-10 keeps the closed loop at ~1e-10."""
-
-
-def _in_camera_frame(A: np.ndarray, yaw: float) -> tuple[np.ndarray, np.ndarray]:
-    """Rows on V^g as rows on the camera-frame velocity (A R, R = cam_to_world(yaw)), and their
-    norms."""
-    c, s = math.cos(yaw), math.sin(yaw)
-    Ac = A @ np.array(((s, 0.0, c), (-c, 0.0, s), (0.0, -1.0, 0.0)))
-    return Ac, np.sqrt(np.einsum("ij,ij->i", Ac, Ac))
 
 
 @dataclass(frozen=True)
@@ -326,13 +319,7 @@ class SafetyFilter:
     def camera_rows(self, rows: CBFRows, yaw: float, k: int) -> tuple[np.ndarray, np.ndarray]:
         """Up to ``k`` rows as unit half-spaces ``a_c v_c <= b`` on the camera-frame velocity,
         those closest to active first (smallest b); rows the speed bound implies are dropped."""
-        Ac, norms = _in_camera_frame(rows.A, yaw)
-        ok = norms >= 1e-12
-        bn = rows.b[ok] / norms[ok]
-        An = Ac[ok] / norms[ok, None]
-        order = np.argsort(bn, kind="stable")[:k]
-        order = order[bn[order] < self.alpha_v]
-        return An[order], bn[order]
+        return nearest_camera_rows(rows.A, rows.b, yaw, self.alpha_v, k)
 
     def certify(
         self, u_nominal: np.ndarray, ctx: SafetyContext, rows: CBFRows | None = None
