@@ -1,6 +1,6 @@
 """Training throughput of shared-parameter PPO, with and without the CBF shield.
 
-    PYTHONPATH=. python benchmarks/train_speed.py [--timesteps 12288] [--repeats 3] [--n-envs K]
+    PYTHONPATH=. python benchmarks/train_speed.py [--timesteps 36864] [--repeats 3] [--n-envs K]
         [--n-epochs E] [--batch-size B] [--net-arch 128,128]
 
 Per configuration, the median over repeats of: agent-steps/s of ``PPO.learn`` (rollouts + updates
