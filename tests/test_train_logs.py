@@ -113,3 +113,31 @@ def test_exact_budget_lagrangian_log_and_resume(tmp_path, capsys):
     assert runs[0]["shield_intervention_rate"] is None
     with pytest.raises(ValueError, match=r"neither a train\.ppo run"):
         compare.load_any_run(tmp_path)
+
+
+def test_console_return_is_the_mean_of_the_last_finished_episodes():
+    """Each console line carries the last `recent` episodes' mean return and cost, also after
+    a rollout in which no episode ended; TensorBoard's per-rollout numbers stay NaN there."""
+    from train.callbacks import TrainingLog, format_row
+
+    lines: list[str] = []
+    log = TrainingLog(every=1, echo=lines.append, recent=3)
+    log.num_timesteps = 0
+    log._on_rollout_start()
+
+    def rollout(episodes):
+        log.locals = {"infos": [{"episode": {"r": r, "c": c}} for r, c in episodes]}
+        log._on_step()
+        row = log.row()
+        lines.append(format_row(row))
+        log._on_rollout_start()
+        return row
+
+    assert "return - | cost - (last 0 episodes)" in format_row(log.row())
+    first = rollout([(1.0, 0.0), (3.0, 2.0)])
+    assert first["recent_return"] == 2.0 and first["ep_return"] == 2.0
+    quiet = rollout([])
+    assert np.isnan(quiet["ep_return"]) and quiet["recent_return"] == 2.0
+    assert "return 2.00 | cost 1.00 (last 2 episodes)" in lines[-1]
+    rollout([(5.0, 1.0), (7.0, 1.0)])  # only the last 3 count: 3, 5, 7
+    assert "return 5.00 | cost 1.33 (last 3 episodes)" in lines[-1]

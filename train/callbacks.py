@@ -8,6 +8,7 @@ per 1,000); episode returns and costs are per agent (one VecEnv row).
 from __future__ import annotations
 
 import time
+from collections import deque
 from collections.abc import Callable
 
 import numpy as np
@@ -36,12 +37,18 @@ class StopAtTimesteps(BaseCallback):
 class TrainingLog(BaseCallback):
     """Per rollout: mean episode return and cost per agent, violation and shield-intervention
     rates, agent-steps/s to TensorBoard (``rollout/ep_cost_mean``, ``safety/*_rate``,
-    ``time/agent_steps_per_s``); a console line every ``every`` agent-steps. ``totals`` counts
-    the agent-steps of every violation over the whole call (for args.json)."""
+    ``time/agent_steps_per_s``); a console line every ``every`` agent-steps, whose return and
+    cost are the means over the last ``recent`` finished agent-episodes (SB3's
+    ``ep_rew_mean`` convention: a number on every line, not only after rollouts in which
+    episodes ended). ``totals`` counts the agent-steps of every violation over the whole call
+    (for args.json)."""
 
-    def __init__(self, every: int = 10_000, echo: Callable[[str], None] | None = print) -> None:
+    def __init__(
+        self, every: int = 10_000, echo: Callable[[str], None] | None = print, recent: int = 100
+    ) -> None:
         super().__init__()
         self.every, self.echo = every, echo
+        self.recent: deque[tuple[float, float]] = deque(maxlen=recent)
         self.totals = dict.fromkeys(COUNTS, 0)
         self.extra: dict[str, Callable[[], float]] = {}
         """Further numbers for the log, read at each rollout's end (e.g. the multiplier)."""
@@ -63,6 +70,7 @@ class TrainingLog(BaseCallback):
             if episode is not None:
                 self.returns.append(float(episode["r"]))
                 self.costs.append(float(episode.get("c", np.nan)))
+                self.recent.append((self.returns[-1], self.costs[-1]))
             v = info.get("violations")
             if v is None:  # absorbing row of a finished agent
                 continue
@@ -77,7 +85,8 @@ class TrainingLog(BaseCallback):
         for k in COUNTS:
             self.totals[k] += self.counts[k]
         for key, value in row.items():
-            if key != "agent_steps" and np.isfinite(value):
+            console_only = key == "agent_steps" or key.startswith("recent_")
+            if not console_only and np.isfinite(value):
                 self.logger.record(_TB_NAMES.get(key, key), value)
         if self.echo is not None and self.num_timesteps - self._last_echo >= self.every:
             self._last_echo = self.num_timesteps
@@ -92,13 +101,18 @@ class TrainingLog(BaseCallback):
             self.echo(format_row(self.row()))
 
     def row(self) -> dict[str, float]:
-        """This rollout's numbers (NaN where no episode ended)."""
+        """This rollout's numbers (NaN where no episode ended) and the means over the last
+        finished episodes (``recent_*``; NaN before the first)."""
         steps = max(self.counts["agent_steps"], 1)
         seconds = max(time.perf_counter() - self.t0, 1e-9)
+        recent = np.array(self.recent, float).reshape(-1, 2)
         row = {
             "agent_steps": float(self.num_timesteps),
             "ep_return": float(np.mean(self.returns)) if self.returns else np.nan,
             "ep_cost": float(np.nanmean(self.costs)) if self.costs else np.nan,
+            "recent_episodes": float(len(recent)),
+            "recent_return": float(recent[:, 0].mean()) if len(recent) else np.nan,
+            "recent_cost": _nanmean(recent[:, 1]),
             **{f"{k}_rate": self.counts[k] / steps for k in VIOLATIONS},
             "shield_rate": self.counts["shield_active"] / steps,
             "agent_steps_per_s": (self.num_timesteps - self.steps0) / seconds,
@@ -119,16 +133,24 @@ _TB_NAMES = {
 }
 
 
+def _nanmean(x: np.ndarray) -> float:
+    """Mean of the finite entries; NaN if there are none."""
+    x = x[np.isfinite(x)]
+    return float(x.mean()) if len(x) else np.nan
+
+
 def format_row(row: dict[str, float]) -> str:
-    """One console line of the learning curve ('-' where no episode ended in the rollout)."""
+    """One console line of the learning curve: return and cost over the last finished
+    episodes ('-' before the first), the rates of the last rollout."""
 
     def num(x: float, spec: str) -> str:
         return format(x, spec) if np.isfinite(x) else "-"
 
     rates = " ".join(f"{k[:4]} {1000 * row[f'{k}_rate']:.2f}" for k in VIOLATIONS)
     text = (
-        f"{row['agent_steps']:>10,.0f} steps | return {num(row['ep_return'], '.2f')} "
-        f"| cost {num(row['ep_cost'], '.2f')} | violations/1k steps: {rates} "
+        f"{row['agent_steps']:>10,.0f} steps | return {num(row['recent_return'], '.2f')} "
+        f"| cost {num(row['recent_cost'], '.2f')} (last {row['recent_episodes']:.0f} "
+        f"episodes) | violations/1k steps: {rates} "
         f"| shield {100 * row['shield_rate']:.0f} %"
     )
     if "lambda" in row:
