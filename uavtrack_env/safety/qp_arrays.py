@@ -17,6 +17,15 @@ INF = 1e30
 """Stands for an infinite bound in the solvers' arrays."""
 
 
+@numba.njit(cache=True, inline="always")
+def _camera_row(A, j, c, s):  # pragma: no cover (compiled)
+    """Row j of A R (R = `cam_to_world(yaw)`, c = cos yaw, s = sin yaw) and its norm."""
+    a0 = s * A[j, 0] - c * A[j, 1]
+    a1 = -A[j, 2]
+    a2 = c * A[j, 0] + s * A[j, 1]
+    return a0, a1, a2, math.sqrt(a0 * a0 + a1 * a1 + a2 * a2)
+
+
 @numba.njit(cache=True)
 def camera_rows(A, b, kind, yaw, alpha_v, prune):  # pragma: no cover (compiled)
     """Rows ``A V^g <= b`` as unit rows on the camera-frame velocity (A R v_c, R =
@@ -29,10 +38,7 @@ def camera_rows(A, b, kind, yaw, alpha_v, prune):  # pragma: no cover (compiled)
     kept = np.empty(m, np.int64)
     k = 0
     for j in range(m):
-        a0 = s * A[j, 0] - c * A[j, 1]
-        a1 = -A[j, 2]
-        a2 = c * A[j, 0] + s * A[j, 1]
-        norm = math.sqrt(a0 * a0 + a1 * a1 + a2 * a2)
+        a0, a1, a2, norm = _camera_row(A, j, c, s)
         zero = norm < 1e-12
         scale = 1.0 if zero else norm
         bj = b[j] / scale
@@ -58,10 +64,7 @@ def nearest_camera_rows(A, b, yaw, alpha_v, k):  # pragma: no cover (compiled)
     bn = np.empty(m)
     n = 0
     for j in range(m):
-        a0 = s * A[j, 0] - c * A[j, 1]
-        a1 = -A[j, 2]
-        a2 = c * A[j, 0] + s * A[j, 1]
-        norm = math.sqrt(a0 * a0 + a1 * a1 + a2 * a2)
+        a0, a1, a2, norm = _camera_row(A, j, c, s)
         if norm < 1e-12:
             continue
         An[n, 0], An[n, 1], An[n, 2] = a0 / norm, a1 / norm, a2 / norm
