@@ -5,8 +5,7 @@ default SQP, in `nmpc_speed`'s closed loop.
 
 fatrop needs the NLP stage by stage: per stage k the rows of x_{k+1} = F(x_k, u_k), then the
 stage's own rows on (x_k, u_k) (the initial condition, Table I's soft bounds). The NMPC's
-variables already come stage-wise; its rows are permuted here. The safety half-spaces of the
-``tuned`` preset share one L1 slack over all their stages, which no stage-wise solver takes: only
+variables already come stage-wise; its rows are permuted here, those of Table I and (19) only:
 presets without plan rows (``paper``, ``paper-planner``) run. Rows: the default SQP, fatrop from
 the shifted previous solution, and fatrop with mu_init 1e-4 and a warm-started interior point;
 compiled like the default solver unless ``--interpreted``.
@@ -90,7 +89,7 @@ def main() -> None:
     ap.add_argument("--interpreted", action="store_true", help="nothing compiled")
     args = ap.parse_args()
     if PRESETS[args.preset].nmpc.safety_rows:
-        ap.error(f"preset {args.preset!r} has plan rows with a shared slack: not stage-wise")
+        ap.error(f"preset {args.preset!r} has plan rows, which this script does not permute")
     compiled = not args.interpreted and jit_cache.auto_enabled()
     jit = {} if compiled else {"jit": False}
     variants = {

@@ -250,6 +250,7 @@ BAD = [
         V,
         rf"safety_row_stages must be None \(whole horizon\) or {INT} in \[1, 50\], got 51",
     ),
+    case(NMPCConfig, "safety_row_slack", "max", V, r"safety_row_slack must be 'shared' or 'stage'"),
     case(NMPCConfig, "integrator", "euler2", V, r"integrator must be 'rk4' or 'euler'"),
     case(NMPCConfig, "error_signal", "False", T, r"error_signal must be True or False"),
     case(NMPCConfig, "eps_max", (0.1, -0.1, 0.05, 0.2), V, rf"eps_max\[1\] must be {NONNEG}"),

@@ -87,14 +87,14 @@ run_episode(env, expert, seed=0, steps=20, progress=True)
 def test_the_expert_compiles_its_filter_kernels_before_the_episode():
     """`ExpertPolicy.compile_kernels` (called by the runner before its loop) gives the
     CBF-QP's correction and plan-row kernels the argument types of the closed loop's own calls:
-    an A0 episode with corrected actions adds no second compiled signature (fresh process)."""
+    a B0 episode with corrected actions adds no second compiled signature (fresh process)."""
     script = """
 from baselines.evaluate import world_kwargs
 from uavtrack_env import uavtrack_v0
 from uavtrack_env.expert import ExpertPolicy
 from uavtrack_env.safety.qp_arrays import nearest_camera_rows
 from uavtrack_env.safety.qp_layers import certify_changed
-env = uavtrack_v0.parallel_env(**world_kwargs("A", 0, 400, dynamics="lag", noise=True,
+env = uavtrack_v0.parallel_env(**world_kwargs("B", 0, 400, dynamics="lag", noise=True,
                                               render=False))
 obs, infos = env.reset(seed=0)
 expert = ExpertPolicy.from_env(env, "tuned", threads=1)

@@ -67,9 +67,10 @@ def test_turn_rate_reference_moves_the_planned_yaw_rate_towards_it(turning: NMPC
     assert abs(u_turn[3] - u_paper[3]) > 0.2 * abs(w_d)
 
 
-@pytest.fixture(scope="module")
-def with_rows() -> NMPC:
-    return NMPC(REF, NMPCConfig(safety_rows=2, safety_row_stages=10), error_signal=False)
+@pytest.fixture(scope="module", params=["stage", "shared"])
+def with_rows(request) -> NMPC:
+    cfg = NMPCConfig(safety_rows=2, safety_row_stages=10, safety_row_slack=request.param)
+    return NMPC(REF, cfg, error_signal=False)
 
 
 S_OFF = np.array([0.3, -0.1, 0.15, REF[3] + 0.4])
@@ -92,21 +93,45 @@ def test_safety_rows_hold_on_the_constrained_stages(with_rows: NMPC) -> None:
     assert along[10:].max() > b + 0.1  # the rest of the horizon is free
 
 
-def test_safety_rows_sqp_matches_ipopt() -> None:
+@pytest.mark.parametrize("slack", ["stage", "shared"])
+def test_safety_rows_sqp_matches_ipopt(slack: str) -> None:
     """The default SQP and Ipopt give the same first input with two active half-spaces."""
-    cfg = NMPCConfig(safety_rows=2, safety_row_stages=10)
+    cfg = NMPCConfig(safety_rows=2, safety_row_stages=10, safety_row_slack=slack)
     rows = (np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]), np.array([0.2, 0.1]))
     sqp = NMPC(REF, cfg, error_signal=False)
     for _ in range(3):  # cold Ipopt start, then warm SQP
         res = sqp.solve(S_OFF, VQ, safety_rows=rows)
     assert res.solver_used == "sqpmethod" and res.success, res.status
-    ref = NMPC(
-        REF, NMPCConfig(solver="ipopt", safety_rows=2, safety_row_stages=10), error_signal=False
-    )
+    ref = NMPC(REF, NMPCConfig(**{**vars(cfg), "solver": "ipopt"}), error_signal=False)
     out = ref.solve(S_OFF, VQ, safety_rows=rows)
     assert out.success
     np.testing.assert_allclose(res.u, out.u, atol=1e-3)
     assert res.u[0] <= 0.2 + 1e-6 and res.u[2] <= 0.1 + 1e-6
+
+
+def test_infeasible_row_slacks_are_the_exact_l1_violations(with_rows: NMPC) -> None:
+    """A half-space no input within Table II meets (v_x <= -v_max - 0.5): the plan rides the
+    bound on the K constrained stages, and the L1 slacks are the violations a v - b, per stage
+    ('stage') or the largest over the stages ('shared')."""
+    v_max = ControlLimits().scale[0]
+    a, b = np.array([1.0, 0.0, 0.0]), -v_max - 0.5
+    with_rows.reset()
+    res = with_rows.solve(S_OFF, VQ, safety_rows=(a[None], np.array([b])))
+    assert res.success, res.status
+    np.testing.assert_allclose(res.predicted_u[:10, 0], -v_max, atol=1e-6)
+    violation = res.predicted_u[:10, :3] @ a - b
+    slack = with_rows._w[with_rows._irow[:, 0]]  # the first of the two half-spaces
+    expected = violation if with_rows.cfg.safety_row_slack == "stage" else violation.max()[None]
+    np.testing.assert_allclose(slack, expected, atol=1e-5)
+
+
+def test_per_stage_row_slacks_shift_with_their_stages() -> None:
+    """The warm start moves stage n+1's row slacks to stage n; the last stage keeps its own."""
+    ctrl = NMPC(REF, NMPCConfig(safety_rows=3, safety_row_stages=4), error_signal=False)
+    irow = ctrl._irow
+    assert irow.shape == (4, 3)
+    np.testing.assert_array_equal(ctrl._shift_w[irow], irow[[1, 2, 3, 3]])
+    assert (ctrl._lbx[irow] == 0).all() and np.isinf(ctrl._ubx[irow]).all()
 
 
 @pytest.mark.parametrize(
@@ -216,13 +241,30 @@ def test_fit_ignores_the_settle_time() -> None:
         UKFConfig(fit_settle_time=-1.0)
 
 
-def test_tuned_sqp_solves_the_recorded_warm_start_that_made_qrqp_cycle() -> None:
-    """A warm start recorded in scenario C with the tuned planner (tests/data): with qrqp's
-    min_lam = 0 its QPs cycled and the SQP stopped ('Search_Direction_Becomes_Too_Small', casadi
-    3.8.2). With the default `NMPCConfig.qrqp_min_lam` the SQP converges, to Ipopt's solution."""
+def _in_layout(ctl: NMPC, shared: NMPC, w: np.ndarray) -> np.ndarray:
+    """A primal vector (or its bound multipliers) of ``shared``'s layout in ``ctl``'s: each
+    stage's row slacks take the shared ones."""
+    out = np.zeros(ctl._nw)
+    for name in ("_ix", "_iu", "_isig"):
+        out[getattr(ctl, name)] = w[getattr(shared, name)]
+    out[ctl._irow] = w[shared._irow[0]]
+    return out
+
+
+@pytest.mark.parametrize("slack", ["shared", "stage"])
+def test_tuned_sqp_solves_the_recorded_warm_start_that_made_qrqp_cycle(slack: str) -> None:
+    """A warm start recorded in scenario C with the tuned planner's shared row slacks
+    (tests/data): with qrqp's min_lam = 0 its QPs cycled and the SQP stopped
+    ('Search_Direction_Becomes_Too_Small', casadi 3.8.2). With the default
+    `NMPCConfig.qrqp_min_lam` the SQP converges, to Ipopt's solution; also from the same start
+    in the per-stage slacks' layout."""
     case = np.load(Path(__file__).parent / "data" / "qrqp_cycling_warm_start.npz")
-    ctl = NMPC(case["p"][4:8], PRESETS["tuned"].nmpc)
+    cfg = PRESETS["tuned"].nmpc
+    shared = NMPC(case["p"][4:8], NMPCConfig(**{**vars(cfg), "safety_row_slack": "shared"}))
+    ctl = NMPC(case["p"][4:8], NMPCConfig(**{**vars(cfg), "safety_row_slack": slack}))
     args = {k: case[k] for k in ("x0", "lam_g0", "lam_x0", "p")}
+    args["x0"] = _in_layout(ctl, shared, args["x0"])
+    args["lam_x0"] = _in_layout(ctl, shared, args["lam_x0"])
     args.update(lbx=ctl._lbx, ubx=ctl._ubx, lbg=ctl._lbg, ubg=ctl._ubg)
     ok, sol, status, _ = ctl._call(ctl._solver, args)
     assert ok, status

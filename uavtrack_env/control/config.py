@@ -68,6 +68,10 @@ class NMPCConfig:
     `uavtrack_env.control.nmpc` and docs/conventions.md."""
     safety_row_stages: int | None = None
     """Plan stages 0..K-1 that respect those half-spaces (None: the whole horizon)."""
+    safety_row_slack: Literal["shared", "stage"] = "stage"
+    """L1 slack of those half-spaces: 'shared', one per half-space over the K stages (its
+    penalty prices the worst stage's violation), or 'stage', one per half-space and stage (the
+    sum over stages; the QP keeps the stage-banded structure of (19))."""
 
     # Implementation settings that Table III does not fix.
     integrator: Literal["rk4", "euler"] = "rk4"
@@ -127,6 +131,7 @@ class NMPCConfig:
         f.number("turn_rate_min_speed", lo=0, lo_open=True)
         f.integer("safety_rows", lo=0)
         f.number("safety_row_stages", integer=True, lo=1, hi=horizon, none_means="whole horizon")
+        f.choice("safety_row_slack", ("shared", "stage"))
         f.choice("integrator", ("rk4", "euler"))
         f.flag("error_signal")
         f.tuple("eps_max", 4, lo=0)

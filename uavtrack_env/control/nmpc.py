@@ -273,10 +273,13 @@ class NMPC:
     def _layout(self) -> int:
         """Index the decision vector; returns its length.
 
-        Stage-wise: x_0, u_0, x_1, u_1, sig_1, ..., x_N, sig_N (sig: slacks of Table I's soft
-        bounds), then one L1 slack per safety half-space.
+        Stage-wise: x_0, u_0, rho_0, x_1, u_1, rho_1, sig_1, ..., x_N, sig_N (sig: slacks of
+        Table I's soft bounds; rho: the safety half-spaces' L1 slacks on stages 0..K-1, or one
+        set after x_N when `NMPCConfig.safety_row_slack` is 'shared').
         """
-        N = self.N
+        N, nr = self.N, self.cfg.safety_rows
+        per_stage = nr > 0 and self.cfg.safety_row_slack == "stage"
+        K = self.cfg.safety_row_stages or N
         names, sizes = [], []
         for n in range(N + 1):
             names.append(("x", n))
@@ -284,18 +287,24 @@ class NMPC:
             if n < N:
                 names.append(("u", n))
                 sizes.append(4)
+            if per_stage and n < K:
+                names.append(("rho", n))
+                sizes.append(nr)
             if n >= 1:
                 names.append(("sig", n))
                 sizes.append(3)
+        if nr and not per_stage:
+            names.append(("rho", 0))
+            sizes.append(nr)
         offsets = np.concatenate([[0], np.cumsum(sizes)])
         index = {key: np.arange(offsets[i], offsets[i + 1]) for i, key in enumerate(names)}
-        nw = int(offsets[-1])
         self._ix = np.stack([index[("x", n)] for n in range(N + 1)])  # (N+1, 4)
         self._iu = np.stack([index[("u", n)] for n in range(N)])  # (N, 4)
         self._isig = np.stack([index[("sig", n)] for n in range(1, N + 1)])  # (N, 3)
-        nr = self.cfg.safety_rows
-        self._irow = np.arange(nw, nw + nr)  # one L1 slack per safety half-space
-        return nw + nr
+        # L1 slacks of the safety half-spaces: (K, nr) per stage, (1, nr) shared
+        rho = [index[key] for key in names if key[0] == "rho"]
+        self._irow = np.stack(rho) if rho else np.zeros((0, 0), int)
+        return int(offsets[-1])
 
     def _tracking_problem(self, w: ca.MX, p: ca.MX) -> tuple[ca.MX, list, list, list]:
         """Cost (18) and constraints (19) with Table I's bounds softened: cost, g, lbg, ubg.
@@ -347,13 +356,15 @@ class NMPC:
         nr = self.cfg.safety_rows
         rows_a = ca.reshape(p[15 : 15 + 3 * nr], 3, nr).T
         rows_b = p[15 + 3 * nr :]
-        slack = w[int(self._irow[0]) : int(self._irow[0]) + nr]
         for n in range(K):
+            first = int(self._irow[min(n, len(self._irow) - 1), 0])
+            slack = w[first : first + nr]
             u_n = w[int(self._iu[n, 0]) : int(self._iu[n, 0]) + 4]
             g.append(rows_a @ u_n[0:3] - slack - rows_b)
             lbg.append(np.full(nr, -np.inf))
             ubg.append(np.zeros(nr))
-        cost += self.cfg.slack_weight * ca.sum1(slack)
+            if n < len(self._irow):
+                cost += self.cfg.slack_weight * ca.sum1(slack)
         return cost
 
     def _variable_bounds(self) -> tuple[np.ndarray, np.ndarray]:
@@ -380,6 +391,8 @@ class NMPC:
                 shift_w[self._iu[n]] = self._iu[min(n + 1, N - 1)]
             if n >= 1:
                 shift_w[self._isig[n - 1]] = self._isig[m - 1]
+        for n in range(len(self._irow)):  # per-stage row slacks shift; a shared one stays
+            shift_w[self._irow[n]] = self._irow[min(n + 1, len(self._irow) - 1)]
         # g rows: 4 initial, then per stage 4 dynamics + 6 soft bounds.
         shift_g = np.arange(self._ng)
         for n in range(N):
