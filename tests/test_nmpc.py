@@ -170,7 +170,7 @@ def test_error_signal_is_one_step_model_mismatch() -> None:
 
 @pytest.mark.parametrize("integrator", ["rk4", "euler"])
 def test_float_prediction_equals_the_nlp_model(integrator: str) -> None:
-    """predict_one_step (plain floats) equals the CasADi F_m inside the NLP."""
+    """predict_one_step (a compiled kernel) equals the CasADi F_m inside the NLP."""
     ctrl = NMPC(REF, integrator=integrator)
     rng = np.random.default_rng(3)
     for _ in range(20):
@@ -179,6 +179,18 @@ def test_float_prediction_equals_the_nlp_model(integrator: str) -> None:
         nlp_model = np.asarray(ctrl._F(s, u, vq)).ravel()
         np.testing.assert_allclose(ctrl.predict_one_step(s, u, vq), nlp_model, rtol=0, atol=1e-13)
         assert np.abs(nlp_model - s).max() > 1e-4  # the step moves the state
+
+
+def test_error_signal_wraps_psi_and_caps_each_entry() -> None:
+    """eps of (16): psi's difference across +-pi wraps to the short way round; every entry is
+    clipped to +-`NMPCConfig.eps_max`."""
+    from uavtrack_env.control.nmpc import _capped_error
+
+    cap = np.array(NMPCConfig().eps_max)
+    eps = _capped_error(np.array([0.5, -0.5, 0.01, 3.1]), np.array([0.0, 0.0, 0.0, -3.1]), cap)
+    np.testing.assert_allclose(eps, [cap[0], -cap[1], 0.01, 6.2 - 2 * math.pi], atol=1e-15)
+    eps = _capped_error(np.zeros(4), np.array([0.0, 0.0, -0.2, 2.0]), cap)
+    np.testing.assert_allclose(eps, [0.0, 0.0, cap[2], -cap[3]], atol=0)
 
 
 def test_error_signal_uses_applied_input() -> None:

@@ -32,15 +32,15 @@ import warnings
 from dataclasses import dataclass, field, replace
 
 import casadi as ca
+import numba
 import numpy as np
 
 from uavtrack_env.config import DT, ControlLimits
 from uavtrack_env.control import jit_cache
 from uavtrack_env.control.config import FeatureBounds, NMPCConfig
-from uavtrack_env.geometry import feature_rates, wrap_angle
+from uavtrack_env.geometry import feature_rates, wrap_scalar
 
 _TWO_PI = 2.0 * math.pi
-_NO_ROWS = np.zeros(0)
 
 
 @dataclass
@@ -81,7 +81,7 @@ def _vec(name: str, value, n: int) -> np.ndarray:
     arr = np.asarray(value, dtype=float)
     if arr.shape != (n,):
         raise ValueError(f"{name} must have shape ({n},), got {arr.shape}")
-    if not np.all(np.isfinite(arr)):
+    if not np.isfinite(arr).all():
         raise ValueError(f"{name} must be finite, got {arr}")
     return arr
 
@@ -121,24 +121,42 @@ def _jit_build_dir():
         os.chdir(cwd)
 
 
-def _model_step(s: list, u: list, vq: list, dt: float, integrator: str) -> np.ndarray:
-    """`_discrete_model` evaluated on Python floats (lists in, array out)."""
+_compiled_rates = numba.njit(cache=True)(feature_rates)
 
-    def f(x):
-        return feature_rates(x, u, vq)
 
-    if integrator == "euler":
-        return np.array([a + dt * b for a, b in zip(s, f(s), strict=True)])
-    k1 = f(s)
-    k2 = f([a + dt / 2 * b for a, b in zip(s, k1, strict=True)])
-    k3 = f([a + dt / 2 * b for a, b in zip(s, k2, strict=True)])
-    k4 = f([a + dt * b for a, b in zip(s, k3, strict=True)])
-    return np.array(
-        [
-            a + dt / 6 * (b1 + 2 * b2 + 2 * b3 + b4)
-            for a, b1, b2, b3, b4 in zip(s, k1, k2, k3, k4, strict=True)
-        ]
-    )
+@numba.njit(cache=True)
+def _model_step(s, u, vq, dt, rk4):  # pragma: no cover (compiled)
+    """`_discrete_model` compiled for numpy arrays: the same formulas, each float operation
+    rounded as in CasADi's evaluation (no fused multiply-add)."""
+    k1 = _compiled_rates(s, u, vq)
+    out, x = np.empty(4), np.empty(4)
+    if not rk4:
+        for i in range(4):
+            out[i] = s[i] + dt * k1[i]
+        return out
+    for i in range(4):
+        x[i] = s[i] + dt / 2 * k1[i]
+    k2 = _compiled_rates(x, u, vq)
+    for i in range(4):
+        x[i] = s[i] + dt / 2 * k2[i]
+    k3 = _compiled_rates(x, u, vq)
+    for i in range(4):
+        x[i] = s[i] + dt * k3[i]
+    k4 = _compiled_rates(x, u, vq)
+    for i in range(4):
+        out[i] = s[i] + dt / 6 * (k1[i] + 2 * k2[i] + 2 * k3[i] + k4[i])
+    return out
+
+
+@numba.njit(cache=True)
+def _capped_error(s_rel, s_pred, cap):  # pragma: no cover (compiled)
+    """eps = s_rel - s_pred of eq. (16) with psi's difference wrapped to (-pi, pi], each
+    entry clipped to +-cap."""
+    eps = s_rel - s_pred
+    eps[3] = math.pi - (math.pi - eps[3]) % _TWO_PI
+    for i in range(4):
+        eps[i] = min(max(eps[i], -cap[i]), cap[i])
+    return eps
 
 
 @functools.cache
@@ -229,6 +247,8 @@ class NMPC:
         # Per instance: the buffers hold this controller's solver memory.
         self._solver = _BufferedSolver(self._nlpsol)
         self._cold_solver = _BufferedSolver(self._cold_nlpsol)
+        self._umax = limits.scale  # Table II
+        self._eps_cap = np.asarray(cfg.eps_max, float)
         self.reset()
 
     # ------------------------------------------------------------------ build
@@ -502,21 +522,21 @@ class NMPC:
     def relative_state(self, s: np.ndarray) -> np.ndarray:
         """s with psi replaced by psi* + wrap(psi - psi*), so s - s* is the wrapped error."""
         out = np.array(s, dtype=float)
-        out[3] = self.reference[3] + float(wrap_angle(out[3] - self.reference[3]))
+        out[3] = self.reference[3] + wrap_scalar(float(out[3] - self.reference[3]))
         return out
 
     def predict_one_step(self, s: np.ndarray, u: np.ndarray, vq_cam: np.ndarray) -> np.ndarray:
         """F_m(s, u) of eq. (19) with target velocity vq_cam (numpy in, numpy out).
 
-        Plain float arithmetic, the same formulas as the CasADi ``F_m`` in the NLP (equal to
-        ~1e-15): calling that Function from Python costs ~50x more.
+        A compiled kernel with the same formulas as the CasADi ``F_m`` in the NLP (equal to
+        ~1e-15): calling that Function from Python costs ~100x more.
         """
         return _model_step(
-            np.asarray(s, float).tolist(),
-            np.asarray(u, float).tolist(),
-            np.asarray(vq_cam, float).tolist(),
+            np.asarray(s, float),
+            np.asarray(u, float),
+            np.asarray(vq_cam, float),
             DT,
-            self.cfg.integrator,
+            self.cfg.integrator == "rk4",
         )
 
     def solve(
@@ -549,7 +569,7 @@ class NMPC:
         eps = self._error_signal(s_rel, u_applied)
         s_d = self.reference - eps  # (17)
         w_d = self.turn_rate_reference(vq, aq)
-        p = np.concatenate([s_rel, s_d, vq, aq, [w_d], self._row_params(safety_rows)])
+        p = self._parameters(s_rel, s_d, vq, aq, w_d, safety_rows)
         solver, args = self._initial_guess(s_rel, vq, aq, w_d)
         args.update(p=p, lbx=self._lbx, ubx=self._ubx, lbg=self._lbg, ubg=self._ubg)
 
@@ -585,10 +605,7 @@ class NMPC:
             if u_applied is not None and self._last is not None:
                 self._s_pred = self.predict_one_step(self._last[0], u_applied, self._last[1])
             if self._s_pred is not None:
-                eps = s_rel - self._s_pred
-                eps[3] = float(wrap_angle(eps[3]))
-                cap = np.asarray(self.cfg.eps_max)
-                eps = np.clip(eps, -cap, cap)
+                eps = _capped_error(s_rel, self._s_pred, self._eps_cap)
         return eps
 
     def _initial_guess(
@@ -633,27 +650,46 @@ class NMPC:
             self._lam_x[np.abs(self._lam_x) < 1e-5] = 0.0
         self._fallback_count = 0
         X, Uplan = w_opt[self._ix], w_opt[self._iu]
-        u = np.clip(w_opt[self._iu[0]], -self.limits.scale, self.limits.scale)
+        u = np.minimum(np.maximum(Uplan[0], -self._umax), self._umax)
         return u, X, Uplan
 
-    def _row_params(self, rows: tuple[np.ndarray, np.ndarray] | None) -> np.ndarray:
-        """Parameter block of the safety half-spaces; unused slots are 0 <= 1."""
+    def _parameters(
+        self,
+        s_rel: np.ndarray,
+        s_d: np.ndarray,
+        vq: np.ndarray,
+        aq: np.ndarray,
+        w_d: float,
+        rows: tuple[np.ndarray, np.ndarray] | None,
+    ) -> np.ndarray:
+        """The NLP's parameter vector: s_k, s_d, vq_cam, aq_cam, omega_d, then the safety
+        half-spaces (a_c row by row, then b; unused slots are 0 <= 1)."""
         nr = self.cfg.safety_rows
-        if nr == 0 and rows is None:  # the paper's NLP: no block
-            return _NO_ROWS
-        a, b = np.zeros((nr, 3)), np.ones(nr)
-        if rows is not None:
-            A_in, b_in = np.asarray(rows[0], float), np.asarray(rows[1], float).reshape(-1)
-            k = len(b_in)
-            if A_in.shape != (k, 3) or k > nr or not np.isfinite(A_in).all():
-                raise ValueError(
-                    f"safety_rows must be (A (k, 3), b (k,)) with k <= {nr} finite rows, got "
-                    f"shapes {np.shape(rows[0])}, {np.shape(rows[1])}"
-                )
-            if not np.isfinite(b_in).all():
-                raise ValueError(f"safety_rows b must be finite, got {b_in}")
-            a[:k], b[:k] = A_in, b_in
-        return np.concatenate([a.ravel(), b])  # row j = column j of the column-major reshape
+        if nr == 0 and rows is not None:
+            self._check_rows(rows, 0)
+        p = np.empty(15 + 4 * nr)
+        p[0:4], p[4:8], p[8:11], p[11:14], p[14] = s_rel, s_d, vq, aq, w_d
+        if nr:
+            a, b = p[15 : 15 + 3 * nr].reshape(nr, 3), p[15 + 3 * nr :]
+            a[:], b[:] = 0.0, 1.0
+            if rows is not None:
+                A_in, b_in = self._check_rows(rows, nr)
+                a[: len(b_in)], b[: len(b_in)] = A_in, b_in
+        return p
+
+    @staticmethod
+    def _check_rows(rows: tuple[np.ndarray, np.ndarray], nr: int) -> tuple[np.ndarray, np.ndarray]:
+        """``rows`` as (A (k, 3), b (k,)) finite arrays with k <= nr, else a ValueError."""
+        A_in, b_in = np.asarray(rows[0], float), np.asarray(rows[1], float).reshape(-1)
+        k = len(b_in)
+        if A_in.shape != (k, 3) or k > nr or not np.isfinite(A_in).all():
+            raise ValueError(
+                f"safety_rows must be (A (k, 3), b (k,)) with k <= {nr} finite rows, got "
+                f"shapes {np.shape(rows[0])}, {np.shape(rows[1])}"
+            )
+        if not np.isfinite(b_in).all():
+            raise ValueError(f"safety_rows b must be finite, got {b_in}")
+        return A_in, b_in
 
     def _call(self, solver, args: dict) -> tuple[bool, dict | None, str, int]:
         """Run one nlpsol; success flag, solution, return status, iterations."""
