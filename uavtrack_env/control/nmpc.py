@@ -126,8 +126,8 @@ _compiled_rates = numba.njit(cache=True)(feature_rates)
 
 @numba.njit(cache=True)
 def _model_step(s, u, vq, dt, rk4):  # pragma: no cover (compiled)
-    """`_discrete_model` compiled for numpy arrays: the same formulas, each float operation
-    rounded as in CasADi's evaluation (no fused multiply-add)."""
+    """`_discrete_model` compiled for numpy arrays (``rk4`` False: Euler): the same formulas,
+    equal to CasADi's F_m to ~1e-15."""
     k1 = _compiled_rates(s, u, vq)
     out, x = np.empty(4), np.empty(4)
     if not rk4:
@@ -665,16 +665,14 @@ class NMPC:
         """The NLP's parameter vector: s_k, s_d, vq_cam, aq_cam, omega_d, then the safety
         half-spaces (a_c row by row, then b; unused slots are 0 <= 1)."""
         nr = self.cfg.safety_rows
-        if nr == 0 and rows is not None:
-            self._check_rows(rows, 0)
+        given = None if rows is None else self._check_rows(rows, nr)
         p = np.empty(15 + 4 * nr)
         p[0:4], p[4:8], p[8:11], p[11:14], p[14] = s_rel, s_d, vq, aq, w_d
-        if nr:
-            a, b = p[15 : 15 + 3 * nr].reshape(nr, 3), p[15 + 3 * nr :]
-            a[:], b[:] = 0.0, 1.0
-            if rows is not None:
-                A_in, b_in = self._check_rows(rows, nr)
-                a[: len(b_in)], b[: len(b_in)] = A_in, b_in
+        a, b = p[15 : 15 + 3 * nr].reshape(nr, 3), p[15 + 3 * nr :]
+        a[:], b[:] = 0.0, 1.0
+        if given is not None:
+            k = len(given[1])
+            a[:k], b[:k] = given
         return p
 
     @staticmethod
