@@ -109,7 +109,7 @@ class TrainingLog(BaseCallback):
         row = {
             "agent_steps": float(self.num_timesteps),
             "ep_return": float(np.mean(self.returns)) if self.returns else np.nan,
-            "ep_cost": float(np.nanmean(self.costs)) if self.costs else np.nan,
+            "ep_cost": _nanmean(np.array(self.costs, float)),
             "recent_episodes": float(len(recent)),
             "recent_return": float(recent[:, 0].mean()) if len(recent) else np.nan,
             "recent_cost": _nanmean(recent[:, 1]),

@@ -254,14 +254,13 @@ class NMPC:
     # ------------------------------------------------------------------ build
     def _build(self) -> None:
         """Build the NLP of eqs. (18)-(19) by direct multiple shooting, and its solvers."""
-        nw = self._layout()
-        nr = self.cfg.safety_rows
+        nr, K = self.cfg.safety_rows, self.cfg.safety_row_stages or self.N
+        nw = self._layout(K)
         w = ca.MX.sym("w", nw)
         # Parameters: s_k (4), s_d (4), vq_cam (3), aq_cam (3), omega_d (1), then nr rows
         # a_c (3 nr) and b (nr).
         p = ca.MX.sym("p", 15 + 4 * nr)
         cost, g, lbg, ubg = self._tracking_problem(w, p)
-        K = self.cfg.safety_row_stages or self.N
         if nr:
             cost = self._add_safety_rows(w, p, K, cost, g, lbg, ubg)
         g = ca.vertcat(*g)
@@ -290,8 +289,8 @@ class NMPC:
                 )
                 self._make_solvers(nlp, {}, {})
 
-    def _layout(self) -> int:
-        """Index the decision vector; returns its length.
+    def _layout(self, K: int) -> int:
+        """Index the decision vector (safety half-spaces on stages 0..K-1); returns its length.
 
         Stage-wise: x_0, u_0, rho_0, x_1, u_1, rho_1, sig_1, ..., x_N, sig_N (sig: slacks of
         Table I's soft bounds; rho: the safety half-spaces' L1 slacks on stages 0..K-1, or one
@@ -299,7 +298,6 @@ class NMPC:
         """
         N, nr = self.N, self.cfg.safety_rows
         per_stage = nr > 0 and self.cfg.safety_row_slack == "stage"
-        K = self.cfg.safety_row_stages or N
         names, sizes = [], []
         for n in range(N + 1):
             names.append(("x", n))
@@ -376,7 +374,7 @@ class NMPC:
         nr = self.cfg.safety_rows
         rows_a = ca.reshape(p[15 : 15 + 3 * nr], 3, nr).T
         rows_b = p[15 + 3 * nr :]
-        for n in range(K):
+        for n in range(K):  # stage n's slacks, or the shared ones (penalised once)
             first = int(self._irow[min(n, len(self._irow) - 1), 0])
             slack = w[first : first + nr]
             u_n = w[int(self._iu[n, 0]) : int(self._iu[n, 0]) + 4]
@@ -715,7 +713,7 @@ class NMPC:
         if v2 < self.cfg.turn_rate_min_speed**2:
             return 0.0
         w = (vz * ax - vx * az) / v2
-        wmax = float(self.limits.scale[3])
+        wmax = float(self._umax[3])
         return min(max(w, -wmax), wmax)
 
     def _cold_start(
@@ -726,7 +724,7 @@ class NMPC:
         w0[self._ix] = s_rel
         n = np.arange(self.N)[:, None] * DT
         u_d = np.hstack([vq + aq * n, np.full((self.N, 1), w_d)])
-        w0[self._iu] = np.clip(u_d, -self.limits.scale, self.limits.scale)
+        w0[self._iu] = np.clip(u_d, -self._umax, self._umax)
         lo = np.array([self.bounds.x1[0], self.bounds.x2[0], self.bounds.x3[0]])
         hi = np.array([self.bounds.x1[1], self.bounds.x2[1], self.bounds.x3[1]])
         w0[self._isig] = np.maximum(np.maximum(lo - s_rel[:3], s_rel[:3] - hi), 0.0)
@@ -734,7 +732,7 @@ class NMPC:
 
     def _fallback(self, s_rel: np.ndarray, vq: np.ndarray) -> tuple[np.ndarray, ...]:
         """Defined action on solver failure: shifted previous plan, else hover with the target."""
-        umax = self.limits.scale
+        umax = self._umax
         if self._w is not None and self._fallback_count < self.cfg.max_fallback_steps:
             self._w = self._w[self._shift_w]
             self._lam_g = self._lam_g[self._shift_g]
