@@ -172,3 +172,40 @@ def test_anchor_steps_keep_fitting_the_demonstrations(tmp_path):
     with pytest.raises(ValueError, match="bc-anchor needs"):
         ppo.main(["--no-shield", "--timesteps", "384", "--out", str(tmp_path / "x"), *SMOKE]
                  + ["--bc-anchor", "5"])  # fmt: skip
+
+
+@pytest.mark.slow
+def test_dagger_labels_the_learners_states_with_the_experts_actions(tmp_path):
+    """One DAgger round in train.ppo adds one episode of labels; `collect` with a learner
+    records the states the learner visits (replayed by hand) and the expert's actions there."""
+    out = tmp_path / "run"
+    ppo.main(
+        ["--shield", "--timesteps", "384", "--out", str(out), *SMOKE]
+        + ["--bc-episodes", "1", "--bc-epochs", "1", "--dagger-rounds", "1"]
+        + ["--dagger-episodes", "1", "--value-warmup", "0"]
+    )
+    saved = json.loads((out / "args.json").read_text())
+    assert saved["bc_samples"] == 2 * 100 * 3  # the demonstrations and one round of labels
+    with np.load(out / "demos.npz") as demos, np.load(out / "dagger.npz") as all_labels:
+        np.testing.assert_array_equal(all_labels["obs"][:300], demos["obs"])
+        assert len(all_labels["actions"]) == 600
+
+    ck = out / "checkpoints"
+    learner = bc.Learner(ck / "ppo_0_steps.zip", ck / "ppo_vecnormalize_0_steps.pkl")
+    obs, labels = bc.collect(_small_world, episodes=1, seed=3, progress=False, learner=learner)
+    expert_obs, _ = bc.collect(_small_world, episodes=1, seed=3, progress=False)
+    assert obs.shape == expert_obs.shape == (120, obs.shape[1])
+    assert not np.array_equal(obs, expert_obs)  # the learner's states, not the expert's
+    env = _small_world()
+    o, infos = env.reset(seed=3)
+    expert, acting = ExpertPolicy.from_env(env), learner.policy()
+    for k in range(40):
+        want = expert(o, infos)
+        acts = acting(o, infos)
+        for i, a in enumerate(env.agents):
+            np.testing.assert_array_equal(obs[3 * k + i], o[a])
+            np.testing.assert_array_equal(labels[3 * k + i], want[a])
+        o, _, _, _, infos = env.step(acts)
+        expert.applied(acts)
+    own = np.concatenate([acting({"uav_0": row}, {})["uav_0"][None] for row in obs])
+    assert not np.allclose(labels, own)  # the expert's actions, not the learner's

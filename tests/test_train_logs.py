@@ -1,5 +1,5 @@
-"""PPO-Lagrangian's penalty and multiplier, the exact step budget, the learning-curve log, and
-the training world both trainers share."""
+"""PPO-Lagrangian's penalty and multiplier, the shield-intervention penalty, the exact step
+budget, the learning-curve log, and the training world both trainers share."""
 
 from __future__ import annotations
 
@@ -14,6 +14,7 @@ pytest.importorskip("stable_baselines3")
 from stable_baselines3.common.vec_env import DummyVecEnv
 
 from train import ppo
+from train.intervention import InterventionPenalty
 from train.lagrangian import LagrangianConfig, LagrangianReward
 from train.world import TrainingWorld
 from uavtrack_env.wrappers.sb3 import AgentVecMonitor
@@ -65,6 +66,35 @@ def test_multiplier_ascends_on_excess_cost_and_stays_non_negative():
 def test_bad_lagrangian_settings_raise(kw):
     with pytest.raises(ValueError, match=next(iter(kw))):
         LagrangianConfig(**kw)
+
+
+class _CorrectedEnv(_CostlyEnv):
+    """`_CostlyEnv` whose shield corrects every step by 0.25 m/s times the step count."""
+
+    def step(self, action):
+        obs, reward, term, trunc, info = super().step(action)
+        return obs, reward, term, trunc, {**info, "shield": {"correction_norm": 0.25 * self.t}}
+
+
+def test_intervention_penalty_charges_each_rows_correction():
+    venv = AgentVecMonitor(DummyVecEnv([_CorrectedEnv, _CostlyEnv]))
+    vec = InterventionPenalty(venv, 2.0)
+    vec.reset()
+    for t in range(1, 5):
+        _, rewards, _, infos = vec.step(np.zeros((2, 1), np.float32))
+        np.testing.assert_allclose(rewards, [0.5 - 2.0 * 0.25 * t, 0.5])  # no shield: unchanged
+    assert [info["episode"]["r"] for info in infos] == [2.0, 2.0]  # the env's own return
+
+
+def test_intervention_penalty_settings():
+    with pytest.raises(ValueError, match="finite number >= 0"):
+        InterventionPenalty(DummyVecEnv([_CostlyEnv]), -1.0)
+    with pytest.raises(ValueError, match="add --shield"):
+        ppo.parse_args(["--out", "x", "--no-shield", "--intervention-penalty", "1"])
+    with pytest.raises(ValueError, match="finite number >= 0"):
+        ppo.parse_args(["--out", "x", "--intervention-penalty", "nan"])
+    args = ppo.parse_args(["--out", "x", "--intervention-penalty", "0.5", "--n-envs", "1"])
+    assert isinstance(ppo.make_vec_env(args).venv, InterventionPenalty)  # under VecNormalize
 
 
 def test_both_trainers_default_to_the_same_world():

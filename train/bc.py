@@ -16,6 +16,8 @@ from __future__ import annotations
 import functools
 import multiprocessing
 from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -25,6 +27,32 @@ from uavtrack_env.expert import ExpertPolicy
 from uavtrack_env.presets import ExpertConfig
 
 
+@dataclass(frozen=True)
+class Learner:
+    """A saved SB3 policy that acts while the expert labels its states (DAgger, Ross et al.
+    2011): ``model`` (.zip) and its VecNormalize statistics ``normalizer`` (.pkl or None);
+    with ``shield`` (an `ExpertConfig`) its actions pass `CBFShield` as in shielded training."""
+
+    model: Path
+    normalizer: Path | None = None
+    shield: ExpertConfig | None = None
+
+    def policy(self) -> Any:
+        """The deterministic policy (``policy(obs, infos) -> {agent: action}``)."""
+        import pickle
+
+        from stable_baselines3 import PPO
+
+        from baselines.compare import SB3Policy
+
+        normalizer = None
+        if self.normalizer is not None:
+            with Path(self.normalizer).open("rb") as f:
+                normalizer = pickle.load(f)
+            normalizer.training = False
+        return SB3Policy(PPO.load(self.model, device="cpu"), normalizer)
+
+
 def collect(
     make_env: Callable[[], Any],
     episodes: int,
@@ -32,27 +60,32 @@ def collect(
     progress: bool = True,
     config: ExpertConfig | str | None = None,
     workers: int = 1,
+    learner: Learner | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Expert rollouts of a full episode each on ``make_env()`` worlds seeded ``seed + e``;
-    ``config`` is the expert's `ExpertConfig` or preset name (default 'tuned'). With
-    ``workers`` > 1 the episodes run in that many processes (``make_env`` must then be
-    picklable, e.g. a `functools.partial`); the arrays are the same as with one.
+    """Rollouts of a full episode each on ``make_env()`` worlds seeded ``seed + e``, labelled
+    by the expert (``config``: its `ExpertConfig` or preset name, default 'tuned'). The expert
+    acts, or with a ``learner`` the learner acts and the expert labels the states it visits
+    (one DAgger round). With ``workers`` > 1 the episodes run in that many processes
+    (``make_env`` must then be picklable, e.g. a `functools.partial`); the arrays are the same
+    as with one.
 
-    Returns (observations (N, n_obs), actions (N, 4)), float32, one row per live agent-step.
+    Returns (observations (N, n_obs), expert actions (N, 4)), float32, one row per live
+    agent-step.
     """
     if episodes < 1:
         raise ValueError(f"episodes must be >= 1, got {episodes}")
     if workers < 1:
         raise ValueError(f"workers must be >= 1, got {workers}")
     seeds = range(seed, seed + episodes)
-    bar = tqdm(total=episodes, desc="expert demos", unit="episode", disable=not progress)
+    desc = "expert demos" if learner is None else "DAgger labels"
+    bar = tqdm(total=episodes, desc=desc, unit="episode", disable=not progress)
     done: list[tuple[list, list]] = []
     if workers == 1:
         for s in seeds:
-            done.append(_episode(make_env, config, s, threads=None))
+            done.append(_episode(make_env, config, s, threads=None, learner=learner))
             bar.update()
     else:
-        run = functools.partial(_episode, make_env, config, threads=1)
+        run = functools.partial(_episode, make_env, config, threads=1, learner=learner)
         with multiprocessing.get_context("spawn").Pool(min(workers, episodes)) as pool:
             for pairs in pool.imap(run, seeds):  # in seed order
                 done.append(pairs)
@@ -64,19 +97,36 @@ def collect(
 
 
 def _episode(
-    make_env: Callable[[], Any], config: ExpertConfig | str | None, seed: int, threads: int | None
+    make_env: Callable[[], Any],
+    config: ExpertConfig | str | None,
+    seed: int,
+    threads: int | None,
+    learner: Learner | None = None,
 ) -> tuple[list, list]:
-    """One expert episode's (observations, actions) of every live agent-step."""
+    """One episode's (observations, expert actions) of every live agent-step; the expert acts,
+    or the ``learner`` acts (shielded if it says so) and the expert is told what was applied."""
     env = make_env()
+    acting = None
+    if learner is not None:
+        acting = learner.policy()
+        if learner.shield is not None:
+            from uavtrack_env.wrappers import CBFShield
+
+            env = CBFShield(env, learner.shield)
     obs, infos = env.reset(seed=seed)
-    expert = ExpertPolicy.from_env(env, config, threads)
+    expert = ExpertPolicy.from_env(env.unwrapped, config, threads)
     obs_rows, act_rows = [], []
     while env.agents:
-        actions = expert(obs, infos)
-        for agent, a in actions.items():
+        labels = expert(obs, infos)
+        for agent, a in labels.items():
             obs_rows.append(obs[agent])
             act_rows.append(a)
+        actions = labels if acting is None else acting(obs, infos)
         obs, _, _, _, infos = env.step(actions)
+        if acting is not None:
+            expert.applied(
+                {a: i.get("shield", {}).get("action", actions[a]) for a, i in infos.items()}
+            )
     expert.close()
     env.close()
     return obs_rows, act_rows

@@ -29,7 +29,12 @@ and a collision ends that UAV's episode only.
 Warm start from the expert (``--bc-episodes N``): N expert episodes are recorded (in
 ``--bc-workers`` processes; cached in ``--bc-demos``), the actor is fitted to them (checkpoint
 0), the critic alone trains for ``--value-warmup`` steps, then PPO fine-tunes, optionally with
-``--bc-anchor`` cloning steps after every update. The recipe of docs/results/rl-training.md:
+``--bc-anchor`` cloning steps after every update. ``--dagger-rounds R`` refines the clone first:
+in each round the cloned actor acts (through the shield with ``--shield``) on
+``--dagger-episodes`` training worlds, the expert labels every state it visits, and the actor is
+fitted again on all labels (kept in DIR/dagger.npz; the anchor then uses them all). With
+``--shield``, ``--intervention-penalty K`` charges K per m/s of the shield's correction
+(`train.intervention`). The recipe of docs/results/rl-training.md:
 
     python -m train.ppo --shield --n-envs 16 --bc-episodes 200 --bc-anchor 10 \
         --value-warmup 100000 --target-kl 0.01 --learning-rate 5e-5 --log-std-init -3.5 \
@@ -42,6 +47,7 @@ import argparse
 import dataclasses
 import functools
 import json
+import math
 import re
 import time
 from dataclasses import dataclass, field
@@ -72,6 +78,7 @@ ENV_FIELDS = (
     "lagrangian",
     "cost_limit",
     "lambda_lr",
+    "intervention_penalty",
     *WORLD_FIELDS,
 )
 """Arguments that define the training env; ``--resume`` takes them from the run's args.json."""
@@ -80,6 +87,8 @@ BC_STATS = ("bc_samples", "bc_val_loss_first_epoch", "bc_val_loss")
 """What `train.bc.pretrain` reports (kept in args.json across ``--resume``)."""
 BC_SEED = 50_000
 """Demonstration worlds are seeded BC_SEED + seed + episode, apart from the evaluation seeds."""
+DAGGER_SEED = 60_000
+"""DAgger round r's worlds are seeded DAGGER_SEED + seed + r * dagger_episodes + episode."""
 
 
 @dataclass
@@ -144,6 +153,16 @@ class Args:
         default=None,
         metadata={"help": "demonstrations .npz to reuse if it exists, else written there"},
     )
+    dagger_rounds: int = field(
+        default=0,
+        metadata={
+            "help": "DAgger rounds after cloning: the cloned actor acts (shielded with --shield), "
+            "the expert labels its states, the actor is fitted again on all labels"
+        },
+    )
+    dagger_episodes: int = field(
+        default=60, metadata={"help": "training-world episodes per DAgger round"}
+    )
     bc_anchor: int = field(
         default=0,
         metadata={"help": "cloning-loss minibatch steps after every PPO update (0: off)"},
@@ -178,6 +197,13 @@ class Args:
     lambda_lr: float = field(
         default=LagrangianConfig.lambda_lr,
         metadata={"help": "--lagrangian: the multiplier's step size per rollout"},
+    )
+    intervention_penalty: float = field(
+        default=0.0,
+        metadata={
+            "help": "--shield: reward subtracted per m/s of the shield's correction "
+            "(train.intervention)"
+        },
     )
     evaluate: bool = field(
         default=False,
@@ -240,12 +266,22 @@ def make_args(**given: Any) -> Args:
             raise ValueError(f"--{name.replace('_', '-')} must be >= 1")
     if args.bc_anchor > 0 and args.bc_episodes < 1:
         raise ValueError("--bc-anchor needs demonstrations: set --bc-episodes")
+    if args.dagger_rounds < 0 or args.dagger_episodes < 1:
+        raise ValueError("--dagger-rounds must be >= 0 and --dagger-episodes >= 1")
+    if args.dagger_rounds > 0 and args.bc_episodes < 1:
+        raise ValueError("--dagger-rounds refines a cloned actor: set --bc-episodes")
     if set(args.eval_scenarios) - set("ABC"):
         raise ValueError(f"--eval-scenarios takes letters of 'ABC', got {args.eval_scenarios!r}")
     if args.video_every < 0 or not args.video_seconds > 0:
         raise ValueError("--video-every must be >= 0 and --video-seconds > 0")
     if not args.eval_duration > 0:
         raise ValueError("--eval-duration must be > 0 s")
+    if not (math.isfinite(args.intervention_penalty) and args.intervention_penalty >= 0):
+        raise ValueError(
+            f"--intervention-penalty must be a finite number >= 0, got {args.intervention_penalty}"
+        )
+    if args.intervention_penalty > 0 and not args.shield:
+        raise ValueError("--intervention-penalty charges the shield's corrections: add --shield")
     args.set = tuple(args.set)
     world_settings(args)  # a bad world option fails here, naming the EnvConfig field
     lagrangian_settings(args)
@@ -277,7 +313,8 @@ def env_fn(args: Args):
 
 
 def make_vec_env(args: Args, lambda_init: float = 0.0):
-    """The rows' VecEnv -> AgentVecMonitor (-> LagrangianReward) (-> VecNormalize), seeded.
+    """The rows' VecEnv -> AgentVecMonitor (-> InterventionPenalty) (-> LagrangianReward)
+    (-> VecNormalize), seeded.
 
     `VectorSharedPolicyVecEnv`: every world in one batched step, shielded by `VectorCBFShield`
     with ``--shield``."""
@@ -285,11 +322,14 @@ def make_vec_env(args: Args, lambda_init: float = 0.0):
 
     from uavtrack_env.wrappers.sb3 import AgentVecMonitor, VectorSharedPolicyVecEnv
 
+    from .intervention import InterventionPenalty
     from .lagrangian import LagrangianReward
 
     shield = expert_settings(args) if args.shield else None
     rows = VectorSharedPolicyVecEnv(args.n_envs, shield=shield, **world_settings(args))
     vec = AgentVecMonitor(rows)
+    if args.intervention_penalty > 0:
+        vec = InterventionPenalty(vec, args.intervention_penalty)
     if args.lagrangian:
         vec = LagrangianReward(vec, lagrangian_settings(args, lambda_init))
     if args.normalize:
@@ -363,6 +403,9 @@ def train(args: Args):
     demos = demonstrations(args) if args.bc_episodes > 0 else None  # loaded once
     if args.resume is None and demos is not None:
         bc_stats = _clone_expert(args, model, vec, demos, ckdir)
+        for r in range(args.dagger_rounds):
+            demos = _dagger_round(args, r, demos, ckdir)
+            bc_stats = _clone_expert(args, model, vec, demos, ckdir)
     ckpt = CheckpointCallback(
         save_freq=max(1, args.checkpoint_freq // vec.num_envs),
         save_path=str(ckdir),
@@ -538,6 +581,26 @@ def _clone_expert(args: Args, model, vec, demos: tuple, ckdir: Path) -> dict:
     print("behaviour cloning: " + ", ".join(f"{k} {v:.4g}" for k, v in bc_stats.items()))
     save_checkpoint(model, vec, ckdir)  # the cloned policy, before any PPO step
     return bc_stats
+
+
+def _dagger_round(args: Args, r: int, demos: tuple, ckdir: Path) -> tuple:
+    """DAgger round ``r``: the latest cloned actor (checkpoint 0) acts on ``--dagger-episodes``
+    training worlds, the expert labels every state; returns ``demos`` with these labels added
+    (also written to DIR/dagger.npz)."""
+    from train import bc
+
+    norm = ckdir / "ppo_vecnormalize_0_steps.pkl"
+    path, norm = ckdir / "ppo_0_steps.zip", norm if norm.exists() else None
+    shield = expert_settings(args) if args.shield else None
+    seed = DAGGER_SEED + args.seed + r * args.dagger_episodes
+    obs, actions = bc.collect(
+        env_fn(args), args.dagger_episodes, seed, args.progress, expert_settings(args),
+        args.bc_workers, bc.Learner(path, norm, shield),
+    )  # fmt: skip
+    print(f"DAgger round {r + 1}: {len(obs)} labelled states")
+    demos = (np.concatenate([demos[0], obs]), np.concatenate([demos[1], actions]))
+    np.savez_compressed(args.out / "dagger.npz", obs=demos[0], actions=demos[1])
+    return demos
 
 
 def _learn(args: Args, model, callbacks: list, rich_bar: bool, cloned: bool) -> None:

@@ -195,6 +195,14 @@ class ExpertPolicy:
         action = np.clip(st.last_u / self.scale, -1.0, 1.0).astype(np.float32)
         return action, (t3 - t2, t2 - t1 + t4 - t3)
 
+    def applied(self, actions: dict[str, np.ndarray]) -> None:
+        """The normalised actions the env applied when they were not this expert's (a learner
+        acting while the expert labels, DAgger: `train.bc.collect`): each NMPC's error signal
+        (16) then starts from the applied input."""
+        for agent, action in actions.items():
+            u = np.clip(np.asarray(action, float), -1.0, 1.0) * self.scale
+            self.planners[agent].last_u = u
+
     def slacks(self) -> dict[str, float]:
         """The QP slack of each agent's last step (0 without a report)."""
         return {
