@@ -426,7 +426,14 @@ class NMPC:
         """The Ipopt solver of cold starts and rescues, and the configured solver; ``cold_jit``
         and ``jit``: their JIT options (`_jit_options`, or empty for interpreted)."""
         cfg = self.cfg
-        common: dict = {"print_time": False, "expand": cfg.expand, "error_on_fail": False}
+        # NaN at a trial point is the solvers' to handle (the line search backtracks, Ipopt cuts
+        # the step); a failed solve is reported in NMPCResult, not as one console line per NaN.
+        common: dict = {
+            "print_time": False,
+            "expand": cfg.expand,
+            "error_on_fail": False,
+            "show_eval_warnings": False,
+        }
         solver = self.cfg.solver
         ipopt_opts = {
             **common,
