@@ -110,6 +110,18 @@ def test_both_trainers_default_to_the_same_world():
         ppo.parse_args(["--out", "x", "--terminate-on-collision", "sometimes"])
 
 
+def test_world_density_options_reach_the_random_worlds():
+    args = ppo.parse_args(
+        ["--out", "x", "--min-obstacles", "24", "--max-obstacles", "48", "--corridor", "1.5"]
+    )
+    world = ppo.world_settings(args)["random_world"]
+    assert world["n_obstacles"] == (24, 48) and world["corridor"] == 1.5
+    with pytest.raises(ValueError, match="n_obstacles"):
+        ppo.parse_args(["--out", "x", "--min-obstacles", "9", "--max-obstacles", "8"])
+    with pytest.raises(ValueError, match="corridor"):
+        ppo.parse_args(["--out", "x", "--corridor", "0"])
+
+
 @pytest.mark.slow
 def test_exact_budget_lagrangian_log_and_resume(tmp_path, capsys):
     out = tmp_path / "lag"

@@ -173,6 +173,13 @@ class Args:
     start_heading_offset: float = field(
         default=TrainingWorld.start_heading_offset, metadata=_WORLD_HELP["start_heading_offset"]
     )
+    min_obstacles: int = field(
+        default=TrainingWorld.min_obstacles, metadata=_WORLD_HELP["min_obstacles"]
+    )
+    max_obstacles: int = field(
+        default=TrainingWorld.max_obstacles, metadata=_WORLD_HELP["max_obstacles"]
+    )
+    corridor: float = field(default=TrainingWorld.corridor, metadata=_WORLD_HELP["corridor"])
     value_warmup: int = field(
         default=100_000,
         metadata={"help": "agent-steps training only the critic after cloning (actor frozen)"},

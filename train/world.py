@@ -12,10 +12,11 @@ import dataclasses
 from dataclasses import dataclass, field
 from typing import Any
 
-from uavtrack_env.config import EnvConfig, RewardConfig
+from uavtrack_env.config import EnvConfig, RandomWorldConfig, RewardConfig
 
 _ENV = EnvConfig()
 _REWARD = RewardConfig()
+_RANDOM = RandomWorldConfig()
 
 
 @dataclass(frozen=True)
@@ -48,6 +49,16 @@ class TrainingWorld:
     start_heading_offset: float = field(
         default=0.3, metadata={"help": "start heading offset from facing the car (rad)"}
     )
+    min_obstacles: int = field(
+        default=_RANDOM.n_obstacles[0], metadata={"help": "fewest obstacles of a random world"}
+    )
+    max_obstacles: int = field(
+        default=_RANDOM.n_obstacles[1], metadata={"help": "most obstacles of a random world"}
+    )
+    corridor: float = field(
+        default=_RANDOM.corridor,
+        metadata={"help": "half-width (m) of the car's path kept free of obstacles"},
+    )
 
     def env_kwargs(self) -> dict[str, Any]:
         """Keyword arguments of ``uavtrack_v0.parallel_env`` (checked by `EnvConfig`)."""
@@ -61,6 +72,8 @@ class TrainingWorld:
             "random_world": {
                 "start_offset": self.start_offset,
                 "start_heading_offset": self.start_heading_offset,
+                "n_obstacles": (self.min_obstacles, self.max_obstacles),
+                "corridor": self.corridor,
             },
         }
         EnvConfig.from_kwargs(**kwargs)  # a bad value fails here, naming the field
