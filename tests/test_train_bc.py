@@ -175,7 +175,7 @@ def test_anchor_steps_keep_fitting_the_demonstrations(tmp_path):
 
 
 @pytest.mark.slow
-def test_dagger_labels_the_learners_states_with_the_experts_actions(tmp_path):
+def test_dagger_labels_the_learners_states_with_the_experts_actions(tmp_path, capsys):
     """One DAgger round in train.ppo adds one episode of labels; `collect` with a learner
     records the states the learner visits (replayed by hand) and the expert's actions there."""
     out = tmp_path / "run"
@@ -189,6 +189,10 @@ def test_dagger_labels_the_learners_states_with_the_experts_actions(tmp_path):
     with np.load(out / "demos.npz") as demos, np.load(out / "dagger.npz") as all_labels:
         np.testing.assert_array_equal(all_labels["obs"][:300], demos["obs"])
         assert len(all_labels["actions"]) == 600
+    capsys.readouterr()
+    resume = ["--resume", str(out), "--timesteps", "192", "--bc-episodes", "1", "--bc-anchor", "1"]
+    ppo.main([*SMOKE, *resume])
+    assert f"600 samples from {out / 'dagger.npz'}" in capsys.readouterr().out  # the anchor's
 
     ck = out / "checkpoints"
     learner = bc.Learner(ck / "ppo_0_steps.zip", ck / "ppo_vecnormalize_0_steps.pkl")

@@ -374,10 +374,13 @@ def save_checkpoint(model, vec, ckdir: Path) -> None:
 
 # ---------------------------------------------------------------------- train
 def demonstrations(args: Args) -> tuple[np.ndarray, np.ndarray]:
-    """The expert's (observations, actions) on unshielded training worlds, cached in a .npz."""
+    """The expert's (observations, actions) on unshielded training worlds, cached in a .npz;
+    a resumed run with DAgger labels (DIR/dagger.npz) takes those, as its anchor did."""
     from train import bc
 
     path = Path(args.bc_demos or args.out / "demos.npz")
+    if args.resume is not None and (args.out / "dagger.npz").exists():
+        path = args.out / "dagger.npz"
     if path.exists():
         with np.load(path) as d:
             print(f"behaviour cloning: {len(d['obs'])} samples from {path}")
@@ -597,12 +600,12 @@ def _dagger_round(args: Args, r: int, demos: tuple, ckdir: Path) -> tuple:
     from train import bc
 
     norm = ckdir / "ppo_vecnormalize_0_steps.pkl"
-    path, norm = ckdir / "ppo_0_steps.zip", norm if norm.exists() else None
     shield = expert_settings(args) if args.shield else None
+    learner = bc.Learner(ckdir / "ppo_0_steps.zip", norm if norm.exists() else None, shield)
     seed = DAGGER_SEED + args.seed + r * args.dagger_episodes
     obs, actions = bc.collect(
         env_fn(args), args.dagger_episodes, seed, args.progress, expert_settings(args),
-        args.bc_workers, bc.Learner(path, norm, shield),
+        args.bc_workers, learner,
     )  # fmt: skip
     print(f"DAgger round {r + 1}: {len(obs)} labelled states")
     demos = (np.concatenate([demos[0], obs]), np.concatenate([demos[1], actions]))
