@@ -60,11 +60,22 @@ class SB3Policy:
         return dict(zip(agents, actions, strict=True))
 
 
+def load_policy(model_path: Path, norm_path: Path | None = None) -> SB3Policy:
+    """A saved SB3 model (.zip) as a deterministic `SB3Policy`, with its VecNormalize
+    statistics (.pkl) when ``norm_path`` exists."""
+    from stable_baselines3 import PPO
+
+    normalizer = None
+    if norm_path is not None and Path(norm_path).exists():
+        with Path(norm_path).open("rb") as f:  # a VecNormalize without its venv: normalize_obs
+            normalizer = pickle.load(f)
+        normalizer.training = False
+    return SB3Policy(PPO.load(model_path, device="cpu"), normalizer)
+
+
 def load_run(run_dir: Path, cloned: bool = False) -> tuple[SB3Policy, dict]:
     """The final model of a ``train.ppo`` run directory and its saved arguments; with
     ``cloned``, its behaviour-cloned policy before any PPO step (checkpoint 0)."""
-    from stable_baselines3 import PPO
-
     run_dir = Path(run_dir)
     model_path = run_dir / "model.zip"
     norm_path = run_dir / "vecnormalize.pkl"
@@ -74,12 +85,7 @@ def load_run(run_dir: Path, cloned: bool = False) -> tuple[SB3Policy, dict]:
     if not model_path.exists():
         raise ValueError(f"{model_path} not found: expected the output directory of train.ppo")
     args = json.loads((run_dir / "args.json").read_text())
-    normalizer = None
-    if norm_path.exists():
-        with norm_path.open("rb") as f:  # a VecNormalize without its venv: normalize_obs only
-            normalizer = pickle.load(f)
-        normalizer.training = False
-    return SB3Policy(PPO.load(model_path, device="cpu"), normalizer), args
+    return load_policy(model_path, norm_path), args
 
 
 def load_any_run(run_dir: Path) -> tuple[str, bool, Policy]:

@@ -30,8 +30,9 @@ from uavtrack_env.presets import ExpertConfig
 @dataclass(frozen=True)
 class Learner:
     """A saved SB3 policy that acts while the expert labels its states (DAgger, Ross et al.
-    2011): ``model`` (.zip) and its VecNormalize statistics ``normalizer`` (.pkl or None);
-    with ``shield`` (an `ExpertConfig`) its actions pass `CBFShield` as in shielded training."""
+    2011): ``model`` (.zip) and its VecNormalize statistics ``normalizer`` (.pkl; none if None
+    or missing); with ``shield`` (an `ExpertConfig`) its actions pass `CBFShield` as in
+    shielded training."""
 
     model: Path
     normalizer: Path | None = None
@@ -39,18 +40,9 @@ class Learner:
 
     def policy(self) -> Any:
         """The deterministic policy (``policy(obs, infos) -> {agent: action}``)."""
-        import pickle
+        from baselines.compare import load_policy
 
-        from stable_baselines3 import PPO
-
-        from baselines.compare import SB3Policy
-
-        normalizer = None
-        if self.normalizer is not None:
-            with Path(self.normalizer).open("rb") as f:
-                normalizer = pickle.load(f)
-            normalizer.training = False
-        return SB3Policy(PPO.load(self.model, device="cpu"), normalizer)
+        return load_policy(self.model, self.normalizer)
 
 
 def collect(

@@ -14,6 +14,13 @@ from stable_baselines3.common.vec_env import VecEnvWrapper
 from stable_baselines3.common.vec_env.base_vec_env import VecEnvStepReturn
 
 
+def checked_coef(coef: float) -> float:
+    """``coef`` as a float; ValueError unless it is finite and >= 0."""
+    if not (np.isfinite(coef) and coef >= 0):
+        raise ValueError(f"the intervention penalty must be a finite number >= 0, got {coef}")
+    return float(coef)
+
+
 class InterventionPenalty(VecEnvWrapper):
     """Subtracts ``coef`` x the shield's correction (m/s) from each row's reward.
 
@@ -21,10 +28,8 @@ class InterventionPenalty(VecEnvWrapper):
     keep their reward."""
 
     def __init__(self, venv, coef: float) -> None:
-        if not (np.isfinite(coef) and coef >= 0):
-            raise ValueError(f"the intervention penalty must be a finite number >= 0, got {coef}")
         super().__init__(venv)
-        self.coef = float(coef)
+        self.coef = checked_coef(coef)
 
     def reset(self) -> np.ndarray:
         return self.venv.reset()

@@ -47,7 +47,6 @@ import argparse
 import dataclasses
 import functools
 import json
-import math
 import re
 import time
 from dataclasses import dataclass, field
@@ -67,6 +66,7 @@ from uavtrack_env.presets import (
 )
 from uavtrack_env.provenance import cli_command, config_record
 
+from .intervention import checked_coef
 from .lagrangian import LagrangianConfig
 from .world import WORLD_FIELDS, TrainingWorld
 
@@ -283,10 +283,7 @@ def make_args(**given: Any) -> Args:
         raise ValueError("--video-every must be >= 0 and --video-seconds > 0")
     if not args.eval_duration > 0:
         raise ValueError("--eval-duration must be > 0 s")
-    if not (math.isfinite(args.intervention_penalty) and args.intervention_penalty >= 0):
-        raise ValueError(
-            f"--intervention-penalty must be a finite number >= 0, got {args.intervention_penalty}"
-        )
+    checked_coef(args.intervention_penalty)
     if args.intervention_penalty > 0 and not args.shield:
         raise ValueError("--intervention-penalty charges the shield's corrections: add --shield")
     args.set = tuple(args.set)
@@ -599,9 +596,8 @@ def _dagger_round(args: Args, r: int, demos: tuple, ckdir: Path) -> tuple:
     (also written to DIR/dagger.npz)."""
     from train import bc
 
-    norm = ckdir / "ppo_vecnormalize_0_steps.pkl"
     shield = expert_settings(args) if args.shield else None
-    learner = bc.Learner(ckdir / "ppo_0_steps.zip", norm if norm.exists() else None, shield)
+    learner = bc.Learner(ckdir / "ppo_0_steps.zip", ckdir / "ppo_vecnormalize_0_steps.pkl", shield)
     seed = DAGGER_SEED + args.seed + r * args.dagger_episodes
     obs, actions = bc.collect(
         env_fn(args), args.dagger_episodes, seed, args.progress, expert_settings(args),
