@@ -548,10 +548,30 @@ def certify_team(agents: Sequence[OnboardAgent], u: np.ndarray) -> Certificates:
             u, data[:, 3], data[:, 4:7], lambda j: out.rows(js[j]), ids, packed
         )
         done.lows, done.rows_at = lows, (out.ints[0], out.ints[1], begin)
-        return done
+        return _climb_over_car(agents, u, done)
     ids = [agent.neighbour_ids() for agent in agents]
     own = np.array([agent._seen[0].data[agent._seen[1]] for agent in agents]).reshape(-1, 15)
-    return shield.certify_many(u, own[:, 3], own[:, 4:7], [a.rows() for a in agents], ids)
+    done = shield.certify_many(u, own[:, 3], own[:, 4:7], [a.rows() for a in agents], ids)
+    return _climb_over_car(agents, u, done)
+
+
+def _climb_over_car(
+    agents: Sequence[OnboardAgent], u: np.ndarray, done: Certificates
+) -> Certificates:
+    """`SafetyFilter.climb_over_car` for the agents whose certificate is a fallback that gave
+    the car's row up (the others' certificates unchanged)."""
+    retry = [
+        j for j in np.flatnonzero(done.fallback).tolist() if "target" in done.report(j).gave_up
+    ]
+    if not retry:
+        return done
+    action, reports = done.action.copy(), done.reports()
+    for j in retry:
+        agent = agents[j]
+        action[j], reports[j] = agent.filter.climb_over_car(
+            u[j], agent.context(), (action[j], reports[j])
+        )
+    return Certificates.of_reports(action, reports)
 
 
 def onboard_team(

@@ -52,7 +52,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import MISSING, dataclass, field, fields
+from dataclasses import MISSING, dataclass, field, fields, replace
 from typing import Literal
 
 import daqp
@@ -333,7 +333,27 @@ class SafetyFilter:
         t0 = time.perf_counter()
         u = _checked_nominal(u_nominal, ctx)
         rows = self.row_builder(ctx) if rows is None else rows
-        return self._certify(u, ctx.yaw, ctx.velocity, rows, ctx.neighbour_ids, t0)
+        done = self._certify(u, ctx.yaw, ctx.velocity, rows, ctx.neighbour_ids, t0)
+        return self.climb_over_car(u, ctx, done)
+
+    def climb_over_car(
+        self, u: np.ndarray, ctx: SafetyContext, done: tuple[np.ndarray, ShieldReport]
+    ) -> tuple[np.ndarray, ShieldReport]:
+        """``done`` = certify's (action, report) of ``u``; if it is a fallback that gave the
+        car's box row up, the certificate again with the car's frustum (`barrier_rows.target_row`).
+
+        Beside the car's box its barrier's gradient is horizontal: a UAV between the car and an
+        obstacle (whose row is horizontal too) has no command that keeps both, and giving the
+        car's row up leaves it in the car's path. The frustum's zero set is at least the
+        clearance from the box and climbing always raises it, so it and the obstacles' rows
+        leave a way out: over the car."""
+        report = done[1]
+        if report.status != "fallback" or "target" not in report.gave_up or ctx.target_frustum:
+            return done
+        ctx = replace(ctx, target_frustum=True)
+        return self._certify(
+            u, ctx.yaw, ctx.velocity, self.row_builder(ctx), ctx.neighbour_ids, time.perf_counter()
+        )
 
     def certify_trusted(
         self, u: np.ndarray, ctx: SafetyContext, rows: CBFRows
