@@ -30,7 +30,10 @@ Layers, each tried only if the previous one cannot give an answer:
    then the other UAVs' rows (`hard_penalty`) with the floor and obstacle rows still hard, then
    those too (`hard_penalty` * 100): a best-effort separating velocity, e.g. when the state is
    already unsafe. If even that fails (solver error), brake: V = 0 with the clipped yaw rate.
-   All report status "fallback" and list the hard rows they violate in ``gave_up``. certify
+   All report status "fallback" and list the hard rows they violate in ``gave_up``. A fallback
+   that gave the car's box row up is certified again with the car's frustum
+   (`SafetyFilter.climb_over_car`): beside the box the box row's gradient is horizontal, so it
+   and an obstacle's row can leave no command, while climbing always raises the frustum. certify
    never raises on a valid input and never returns NaN.
 
 Speed bound ``||V|| <= alpha_v`` (a norm, not linear): after each QP, if ``||V|| > alpha_v`` a
