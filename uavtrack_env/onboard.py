@@ -516,7 +516,10 @@ class OnboardAgent:
         rows = self.rows()
         out, j = self._seen
         own = out.data[j]
-        return self.filter.certify_pose(u, float(own[3]), own[4:7], rows, self.neighbour_ids())
+        done = self.filter.certify_pose(u, float(own[3]), own[4:7], rows, self.neighbour_ids())
+        if done[1].status != "fallback":
+            return done
+        return self.filter.climb_over_car(u, self.context(), done)
 
     def neighbour_ids(self, known: int | None = None) -> tuple[int, ...]:
         """The team indices of the team-mates believed at the latest observation (they name
