@@ -39,6 +39,7 @@ import numpy as np
 from tqdm import tqdm
 
 from uavtrack_env import uavtrack_v0
+from uavtrack_env.config import RandomWorldConfig
 from uavtrack_env.geometry import world_to_cam_vec
 from uavtrack_env.presets import (
     DEFAULT_PRESET,
@@ -48,6 +49,7 @@ from uavtrack_env.presets import (
 )
 from uavtrack_env.provenance import cli_command, config_record
 from uavtrack_env.runner import run_episode
+from uavtrack_env.target import CAR_HALF_EXTENTS
 
 Policy = Callable[[dict, dict], dict[str, np.ndarray]]
 """``policy(obs, infos) -> {agent: normalised action (4,)}`` for every live agent."""
@@ -125,6 +127,20 @@ class HarnessOptions:
     progress: bool = True
     search_options: SearchOptions = field(default_factory=SearchOptions)
     scales: MarginScales = field(default_factory=MarginScales)
+    n_obstacles: tuple[int, int] | None = None
+    """Fewest and most obstacles of a world (None: `RandomWorldConfig.n_obstacles`)."""
+    corridor: float | None = None
+    """Half-width (m) of the car's path kept free of obstacles (None:
+    `RandomWorldConfig.corridor`)."""
+
+    def random_world(self) -> dict[str, Any]:
+        """The ``random_world`` overrides of ``parallel_env`` these options make."""
+        out: dict[str, Any] = {}
+        if self.n_obstacles is not None:
+            out["n_obstacles"] = tuple(self.n_obstacles)
+        if self.corridor is not None:
+            out["corridor"] = self.corridor
+        return out
 
 
 @dataclass(frozen=True)
@@ -149,9 +165,15 @@ def make_worlds(count: int, seed: int = 0) -> list[WorldSpec]:
     return [WorldSpec(k, *cells[k % len(cells)], seed + k) for k in range(count)]
 
 
-def make_env(world: WorldSpec, steps: int, shield: ExpertConfig | None) -> Any:
-    """The world's env (``terminate_on_collision="agent"``), in `CBFShield` unless ``shield``
-    is None; the shield's warning about dropped messages is silenced."""
+def make_env(
+    world: WorldSpec,
+    steps: int,
+    shield: ExpertConfig | None,
+    random_world: dict[str, Any] | None = None,
+) -> Any:
+    """The world's env (``terminate_on_collision="agent"``; ``random_world``: overrides of its
+    `RandomWorldConfig`, e.g. ``HarnessOptions.random_world()``), in `CBFShield` unless
+    ``shield`` is None."""
     env = uavtrack_v0.parallel_env(
         scenario="random",
         n_uavs=world.n,
@@ -160,6 +182,7 @@ def make_env(world: WorldSpec, steps: int, shield: ExpertConfig | None) -> Any:
         comms={"drop_prob": world.drop},
         detector={"dropout_prob": 0.2},
         terminate_on_collision="agent",
+        random_world=random_world or {},
     )
     if shield is None:
         return env
@@ -274,6 +297,49 @@ def spin(vertical: float) -> Factory:
     return make
 
 
+class BlockCar:
+    """Each UAV holds a post on the car's path (`posts`), so the car drives at it: ``ahead`` m
+    in front of the car's front, ``side`` m beside its centre line, ``height`` m over the
+    ground (drawn per agent: 0.2-3, +-1.5, 0.3-1.2; the car is 1.5 m tall). It flies there with
+    a command proportional to the distance (full at 1 m) and turns to face the car. Among
+    obstacles this pins UAVs between the car and a box (`SafetyFilter.climb_over_car`)."""
+
+    def __init__(self, env: Any, rng: np.random.Generator) -> None:
+        self.env = env
+        n = len(env.possible_agents)
+        self.offsets = np.column_stack(
+            [
+                CAR_HALF_EXTENTS[0] + rng.uniform(0.2, 3.0, n),
+                rng.uniform(-1.5, 1.5, n),
+                rng.uniform(0.3, 1.2, n),
+            ]
+        )
+        """(n, 3): each agent's ahead, side and height (m)."""
+
+    def posts(self, infos: dict) -> dict[str, np.ndarray]:
+        """Each live agent's post (world, m) at the car's pose in ``infos``."""
+        raw = self.env.unwrapped
+        c, s = math.cos(raw.target.heading), math.sin(raw.target.heading)
+        out = {}
+        for i, a in enumerate(raw.possible_agents):
+            if a in infos:
+                ahead, side, height = self.offsets[i]
+                x, y, _ = infos[a]["truth"]["target_position"]
+                out[a] = np.array([x + ahead * c - side * s, y + ahead * s + side * c, height])
+        return out
+
+    def __call__(self, _obs: dict, infos: dict) -> dict[str, np.ndarray]:
+        posts, out = self.posts(infos), {}
+        for a in self.env.agents:
+            own = infos[a]["own"]
+            d = world_to_cam_vec(posts[a] - own["position"], own["yaw"])
+            to_car = infos[a]["truth"]["target_position"] - own["position"]
+            turn = math.atan2(to_car[1], to_car[0]) - own["yaw"]
+            turn = math.atan2(math.sin(turn), math.cos(turn))
+            out[a] = np.clip(np.r_[d, -turn], -1.0, 1.0)  # omega_cy = -(world yaw rate)
+        return out
+
+
 def random_held(env: Any, rng: np.random.Generator) -> Policy:
     """Each agent holds a uniform action in [-1, 1]^4 for a random 1-40 steps, then redraws."""
     held: dict[str, tuple[np.ndarray, int]] = {}
@@ -329,7 +395,9 @@ FAMILIES: dict[str, Factory] = {
 MIXABLE = tuple(FAMILIES)
 """The families ``mixed`` draws from."""
 FAMILIES["mixed"] = mixed
-ALL_FAMILIES = (*FAMILIES, SEARCH_FAMILY)
+# ALL_FAMILIES is append-only: a family's generator derives from its index (`family_rng`).
+FAMILIES["block-car"] = BlockCar
+ALL_FAMILIES = (*(f for f in FAMILIES if f != "block-car"), SEARCH_FAMILY, "block-car")
 
 
 def sequence_policy(env: Any, knots: np.ndarray, steps: int) -> Policy:
@@ -502,7 +570,7 @@ def run_one(
     world: WorldSpec, family: str, shielded: bool, opts: HarnessOptions, config: ExpertConfig
 ) -> dict[str, Any]:
     """One (world, family, shielded?) episode (the search for ``cem``) -> a run record."""
-    env = make_env(world, opts.steps, config if shielded else None)
+    env = make_env(world, opts.steps, config if shielded else None, opts.random_world())
     rng = family_rng(world, family, opts.seed)
     wall = time.perf_counter()
     record: dict[str, Any] = {}
@@ -652,12 +720,23 @@ def _table(key: str, rows: list[tuple[str, dict[str, Any]]]) -> list[str]:
     return [head, "|" + "---|" * head.count(" | ") + "---|", *(_row(k, a) for k, a in rows)]
 
 
+def _density(meta: dict[str, Any]) -> str:
+    """ " (24-48 obstacles, corridor 1.5 m)" for worlds other than the default random ones."""
+    parts = []
+    if meta.get("n_obstacles") is not None:
+        lo, hi = meta["n_obstacles"]
+        parts.append(f"{lo}-{hi} obstacles")
+    if meta.get("corridor") is not None:
+        parts.append(f"corridor {meta['corridor']:g} m")
+    return f" ({', '.join(parts)})" if parts else ""
+
+
 def format_report(summary: dict[str, Any], meta: dict[str, Any]) -> str:
     """The markdown report: family table, grid-cell table, shield statuses, failures."""
     lines = [
         "# CBFShield adversary harness",
         "",
-        f"`{meta.get('command', '')}`: {meta.get('worlds', '?')} worlds x "
+        f"`{meta.get('command', '')}`: {meta.get('worlds', '?')} worlds{_density(meta)} x "
         f"{meta.get('steps', '?')} steps, preset `{meta.get('preset', '?')}`, commit "
         f"`{meta.get('commit', '?')}`, wall {meta.get('wall_s', math.nan):.0f} s.",
         "",
@@ -750,6 +829,20 @@ def parse_args(argv: list[str] | None = None) -> HarnessOptions:
         default=d.search_worlds,
         help="search on the first N worlds only (12: one per grid cell)",
     )
+    p.add_argument(
+        "--obstacles",
+        type=int,
+        nargs=2,
+        metavar=("MIN", "MAX"),
+        default=None,
+        help="fewest and most obstacles of a world (default: the random world's, 8 16)",
+    )
+    p.add_argument(
+        "--corridor",
+        type=float,
+        default=None,
+        help="half-width (m) of the car's path kept free of obstacles (default 2.5)",
+    )
     p.add_argument("--out", type=Path, default=d.out, help="output directory")
     p.add_argument("--seed", type=int, default=d.seed, help="world k has seed SEED + k")
     p.add_argument("--workers", type=int, default=d.workers, help="processes")
@@ -781,9 +874,12 @@ def parse_args(argv: list[str] | None = None) -> HarnessOptions:
         workers=a.workers,
         progress=not a.no_progress,
         search_options=search,
+        n_obstacles=None if a.obstacles is None else tuple(a.obstacles),
+        corridor=a.corridor,
     )
     try:
         selected_families(opts)
+        RandomWorldConfig(**opts.random_world())  # checked here, not in the workers
     except ValueError as exc:
         p.error(str(exc))
     return opts

@@ -124,6 +124,69 @@ def test_cli_options():
     assert sa.selected_families(sa.parse_args([])) == list(sa.ALL_FAMILIES)
     with pytest.raises(SystemExit):
         sa.parse_args(["--families", "nope"])
+    assert opts.random_world() == {}
+    dense = sa.parse_args(["--obstacles", "24", "48", "--corridor", "1.5"])
+    assert dense.random_world() == {"n_obstacles": (24, 48), "corridor": 1.5}
+    for bad in (["--obstacles", "9", "3"], ["--corridor", "-1"], ["--obstacles", "4"]):
+        with pytest.raises(SystemExit):
+            sa.parse_args(bad)
+
+
+def test_dense_worlds_reach_the_env_and_the_report():
+    opts = sa.HarnessOptions(n_obstacles=(30, 34), corridor=1.2)
+    env = sa.make_env(sa.make_worlds(1, seed=4)[0], 5, None, opts.random_world())
+    try:
+        env.reset(seed=4)
+        layout = env.unwrapped.layout
+        # placement may reject a few boxes, never add: more than the default 16 shows the option
+        assert 16 < len(layout.obstacle_centers) <= 34
+        assert env.unwrapped.config.random_world.corridor == 1.2
+    finally:
+        env.close()
+    meta = {"worlds": 1, "steps": 5, "n_obstacles": [30, 34], "corridor": 1.2}
+    assert "1 worlds (30-34 obstacles, corridor 1.2 m) x 5 steps" in sa.format_report(
+        sa.summarize([]), meta
+    )
+
+
+def test_block_car_posts_the_team_low_in_front_of_the_car():
+    """block-car's posts lie ahead of the car's front, at most 1.5 m beside its centre line and
+    under its roof; each UAV flies straight at its post and turns to face the car."""
+    world = sa.WorldSpec(0, 3, "integrator", 0.0, 14)
+    starts = {"n_obstacles": (0, 0), "start_heading_offset": 0.6}  # off-formation headings
+    env = sa.make_env(world, 400, None, starts)
+
+    def errors(infos):
+        posts, out = policy.posts(infos), {}
+        for a, post in posts.items():
+            own = infos[a]["own"]
+            to_car = infos[a]["truth"]["target_position"][:2] - own["position"][:2]
+            turn = math.atan2(to_car[1], to_car[0]) - own["yaw"]
+            out[a] = (np.linalg.norm(post - own["position"]), abs(math.remainder(turn, math.tau)))
+        return out
+
+    try:
+        obs, infos = env.reset(seed=14)
+        policy = sa.FAMILIES["block-car"](env, np.random.default_rng(2))
+        first = errors(infos)
+        assert min(e[1] for e in first.values()) > 0.15  # seed 14: 0.18-0.57 rad
+        for _ in range(16):  # 0.2 s from the formation start: nobody is near anything yet
+            before = errors(infos)
+            obs, _r, _t, _tr, infos = env.step(policy(obs, infos))
+            for a, (gap, _turn) in errors(infos).items():
+                assert gap < before[a][0] - 0.005  # closing on the post
+        assert all(errors(infos)[a][1] < 0.8 * first[a][1] for a in first)  # facing the car
+        heading = env.unwrapped.target.heading
+        forward = np.array([math.cos(heading), math.sin(heading)])
+        left = np.array([-forward[1], forward[0]])
+        posts = policy.posts(infos)
+        assert sorted(posts) == sorted(env.possible_agents)
+        for a, post in posts.items():
+            rel = post[:2] - infos[a]["truth"]["target_position"][:2]
+            assert sa.CAR_HALF_EXTENTS[0] + 0.2 <= rel @ forward <= sa.CAR_HALF_EXTENTS[0] + 3.0
+            assert abs(rel @ left) <= 1.5 and 0.3 <= post[2] <= 1.2
+    finally:
+        env.close()
 
 
 # ------------------------------------------------------------------------ a few worlds
@@ -205,3 +268,18 @@ def test_a_crowd_over_a_lost_car_does_not_press_a_uav_into_it():
     run = sa.run_one(world, "seek-car", True, opts, expert_config("tuned"))
     assert run["statuses"].get("fallback", 0) > 0  # the conflicting rows do occur
     assert run["counts"]["collision"] == 0 and run["least"]["car"] > 0.0, run
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("world", sa.make_worlds(12), ids=lambda w: w.cell)
+def test_uavs_posted_in_the_cars_path_among_dense_obstacles_are_never_hit(world):
+    """block-car on dense worlds (24-48 obstacles, a 1.5 m corridor), one per grid cell, 400
+    steps: UAVs held low in front of the car, often with a box behind them. The shield lets
+    nobody collide. Without `SafetyFilter.climb_over_car` the car hits a UAV in the
+    n10-lag-drop0.5 world: its fallback gives the car's box row up."""
+    opts = sa.HarnessOptions(steps=400, progress=False, n_obstacles=(24, 48), corridor=1.5)
+    run = sa.run_one(world, "block-car", True, opts, expert_config("tuned"))
+    assert run["counts"]["collision"] == 0 and run["counts"]["disconnection"] == 0, run
+    assert run["least"]["car"] > 0.0 and run["agent_steps"] == 400 * world.n
+    if world.n == 10 and world.dynamics == "lag":
+        assert run["statuses"].get("fallback", 0) > 0  # the rows do conflict
