@@ -340,6 +340,23 @@ class BlockCar:
         return out
 
 
+class BlockAndPress(BlockCar):
+    """`BlockCar` for the even-numbered agents; each odd-numbered one flies at full command to
+    0.5 m above the even one before it (while it lives) and so presses it down, towards the
+    car and the ground, from R_s away: a team-mate that never yields."""
+
+    def __call__(self, obs: dict, infos: dict) -> dict[str, np.ndarray]:
+        out = super().__call__(obs, infos)
+        names = self.env.unwrapped.possible_agents
+        for i in range(1, len(names), 2):
+            a, below = names[i], names[i - 1]
+            if a in out and below in infos:
+                own = infos[a]["own"]
+                goal = infos[below]["own"]["position"] + np.array([0.0, 0.0, 0.5])
+                out[a][:3] = _to_box(world_to_cam_vec(goal - own["position"], own["yaw"]))
+        return out
+
+
 def random_held(env: Any, rng: np.random.Generator) -> Policy:
     """Each agent holds a uniform action in [-1, 1]^4 for a random 1-40 steps, then redraws."""
     held: dict[str, tuple[np.ndarray, int]] = {}
@@ -396,8 +413,9 @@ MIXABLE = tuple(FAMILIES)
 """The families ``mixed`` draws from."""
 FAMILIES["mixed"] = mixed
 # ALL_FAMILIES is append-only: a family's generator derives from its index (`family_rng`).
-FAMILIES["block-car"] = BlockCar
-ALL_FAMILIES = (*(f for f in FAMILIES if f != "block-car"), SEARCH_FAMILY, "block-car")
+AFTER_SEARCH = {"block-car": BlockCar, "block-and-press": BlockAndPress}
+FAMILIES.update(AFTER_SEARCH)
+ALL_FAMILIES = (*(f for f in FAMILIES if f not in AFTER_SEARCH), SEARCH_FAMILY, *AFTER_SEARCH)
 
 
 def sequence_policy(env: Any, knots: np.ndarray, steps: int) -> Policy:

@@ -94,3 +94,27 @@ def test_bad_radius_is_refused():
             neighbours=[[3, 0, 1]],
             neighbour_velocity_radius=[np.nan],
         )
+
+
+def test_the_frustum_certificate_gives_stale_team_mates_up_with_the_car():
+    """`SafetyFilter.climb_over_car`'s layers: the uav row of a team-mate known only within a
+    ball takes the car's priority, an exact team-mate's row keeps its own; rows unchanged."""
+    from uavtrack_env.safety.cbf import TARGET
+    from uavtrack_env.safety.shield import _stale_team_mates_with_car
+
+    nb = np.array([[2.5, 0.0, 1.0], [0.0, 2.4, 1.2], [-2.2, 0.5, 1.0]])
+    ctx = {
+        "position": [0.0, 0.0, 1.0], "yaw": 0.0, "neighbours": nb,
+        "target_position": [4.0, 3.0, 0.75], "target_velocity": [0.5, 0.0, 0.0],
+        "target_heading": 0.0, "target_frustum": True,
+    }  # fmt: skip
+    builder = RowBuilder(CBF)
+    rows = builder(SafetyContext(neighbour_radius=np.array([0.0, 0.4, 0.0]), **ctx))
+    kind = _stale_team_mates_with_car(rows, np.array([0.0, 0.4, 0.0]))
+    uav = rows.kind == UAV
+    assert sorted(rows.index[uav]) == [0, 1, 2]  # every team-mate within D_s
+    stale = uav & (rows.index == 1)
+    assert np.all(kind[stale] == TARGET) and np.all(kind[~stale] == rows.kind[~stale])
+    assert np.count_nonzero(rows.kind == TARGET) == 1  # the car's row; rows not modified
+    assert _stale_team_mates_with_car(rows, np.zeros(3)) is None
+    assert _stale_team_mates_with_car(rows, None) is None

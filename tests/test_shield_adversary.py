@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 
 from baselines import shield_adversary as sa
+from uavtrack_env.geometry import cam_to_world
 from uavtrack_env.presets import expert_config
 
 
@@ -283,3 +284,42 @@ def test_uavs_posted_in_the_cars_path_among_dense_obstacles_are_never_hit(world)
     assert run["least"]["car"] > 0.0 and run["agent_steps"] == 400 * world.n
     if world.n == 10 and world.dynamics == "lag":
         assert run["statuses"].get("fallback", 0) > 0  # the rows do conflict
+
+
+def test_block_and_press_sends_the_odd_agents_at_their_partners():
+    """block-and-press: the even agents fly block-car's posts; each odd one flies at full command
+    at the point 0.5 m above the even agent before it."""
+    world = sa.WorldSpec(0, 3, "integrator", 0.0, 14)
+    env = sa.make_env(world, 400, None, {"n_obstacles": (0, 0)})
+    try:
+        obs, infos = env.reset(seed=14)
+        press = sa.FAMILIES["block-and-press"](env, np.random.default_rng(2))
+        block = sa.FAMILIES["block-car"](env, np.random.default_rng(2))
+        pressed, plain = press(obs, infos), block(obs, infos)
+        for a in ("uav_0", "uav_2"):
+            np.testing.assert_array_equal(pressed[a], plain[a])
+        own = infos["uav_1"]["own"]
+        goal = infos["uav_0"]["own"]["position"] + [0.0, 0.0, 0.5]
+        way = cam_to_world(own["yaw"]) @ pressed["uav_1"][:3]
+        aim = goal - own["position"]
+        assert way @ aim / (np.linalg.norm(way) * np.linalg.norm(aim)) > 1 - 1e-9
+        assert np.abs(pressed["uav_1"][:3]).max() == pytest.approx(1.0)
+    finally:
+        env.close()
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize(
+    ("index", "dense"), [(19, True), (35, True), (47, True), (59, True), (59, False), (71, False)]
+)
+def test_a_team_mate_pressing_from_a_lost_message_does_not_push_a_uav_into_the_car(index, dense):
+    """block-and-press, lag dynamics, half the messages lost, on worlds of seed 100 where a
+    frustum certificate that gives the car up before the rows of team-mates known only within a
+    ball lets the car touch the pressed UAV: those rows go with the car's, and nobody collides."""
+    world = sa.make_worlds(index + 1, seed=100)[index]
+    assert world.dynamics == "lag" and world.drop == 0.5
+    density = {"n_obstacles": (24, 48), "corridor": 1.5} if dense else {}
+    opts = sa.HarnessOptions(steps=400, seed=100, progress=False, **density)
+    run = sa.run_one(world, "block-and-press", True, opts, expert_config("tuned"))
+    assert run["counts"]["collision"] == 0 and run["counts"]["disconnection"] == 0, run
+    assert run["least"]["car"] > 0.0 and run["least"]["uav"] > 0.0

@@ -33,8 +33,9 @@ Layers, each tried only if the previous one cannot give an answer:
    All report status "fallback" and list the hard rows they violate in ``gave_up``. A fallback
    that gave the car's box row up is certified again with the car's frustum
    (`SafetyFilter.climb_over_car`): beside the box the box row's gradient is horizontal, so it
-   and an obstacle's row can leave no command, while climbing always raises the frustum. certify
-   never raises on a valid input and never returns NaN.
+   and an obstacle's row can leave no command, while climbing always raises the frustum. In that
+   certificate the rows of team-mates known only within a reachable ball (lost messages) share
+   the car's priority. certify never raises on a valid input and never returns NaN.
 
 Speed bound ``||V|| <= alpha_v`` (a norm, not linear): after each QP, if ``||V|| > alpha_v`` a
 tangent cut ``(V/||V||)^T v <= alpha_v`` (valid for the ball) is added and the QP re-solved, at most
@@ -349,14 +350,20 @@ class SafetyFilter:
         obstacle (whose row is horizontal too) has no command that keeps both, and giving the
         car's row up leaves it in the car's path. The frustum's zero set is at least the
         clearance from the box and climbing always raises it, so it and the obstacles' rows
-        leave a way out: over the car."""
+        leave a way out: over the car. In this certificate the rows of team-mates known only
+        within a reachable ball (a lost message: the worst case over the ball) are given up
+        together with the car's frustum, not before it: a team-mate pressing from such a ball
+        would otherwise push the UAV into the car (`baselines.shield_adversary`'s
+        block-and-press)."""
         report = done[1]
         if report.status != "fallback" or "target" not in report.gave_up or ctx.target_frustum:
             return done
         ctx = replace(ctx, target_frustum=True)
+        rows = self.row_builder(ctx)
         return self._certify(
-            u, ctx.yaw, ctx.velocity, self.row_builder(ctx), ctx.neighbour_ids, time.perf_counter()
-        )
+            u, ctx.yaw, ctx.velocity, rows, ctx.neighbour_ids, time.perf_counter(),
+            _stale_team_mates_with_car(rows, ctx.neighbour_radius),
+        )  # fmt: skip
 
     def certify_trusted(
         self, u: np.ndarray, ctx: SafetyContext, rows: CBFRows
@@ -424,7 +431,11 @@ class SafetyFilter:
         rows: CBFRows,
         ids: tuple[int, ...] | None,
         t0: float,
+        layer_kind: np.ndarray | None = None,
     ) -> tuple[np.ndarray, ShieldReport]:
+        """The certificate of ``u`` (module docstring); ``layer_kind``: the family each row's
+        layers treat it as (default ``rows.kind``; the report names rows by ``rows.kind``)."""
+        kind = rows.kind if layer_kind is None else layer_kind
         has_velocity, velocity = velocity is not None, _ZEROS3 if velocity is None else velocity
         if nominal_holds(
             u, yaw, velocity, has_velocity, rows.A, rows.b, self.alpha_v, self.v_max,
@@ -436,12 +447,12 @@ class SafetyFilter:
             )  # fmt: skip
         if self._native is not None:
             out = certify_changed(
-                u, yaw, velocity, has_velocity, rows.A, rows.b, rows.kind, self._lb3,
-                self._ub3, *self._native,
+                u, yaw, velocity, has_velocity, rows.A, rows.b, kind, self._lb3, self._ub3,
+                *self._native,
             )  # fmt: skip
             return out[:4], self._changed_report(out.tolist(), u, rows, ids, t0)
         stage, v, w, An, bn, (kinds, kept), (lb, ub) = triage(
-            u, yaw, velocity, has_velocity, rows.A, rows.b, rows.kind, self.alpha_v,
+            u, yaw, velocity, has_velocity, rows.A, rows.b, kind, self.alpha_v,
             self.v_max, self.w_max, self.options.tol, self._accel_step, self._lb3, self._ub3,
             self.options.prune, self._bounds_code,
         )  # fmt: skip
@@ -609,6 +620,21 @@ class SafetyFilter:
             rows=rows,
             neighbour_ids=ids,
         )
+
+
+def _stale_team_mates_with_car(rows: CBFRows, radius: np.ndarray | None) -> np.ndarray | None:
+    """The rows' kinds with the uav rows of team-mates known only within a ball (``radius``
+    > 0, `SafetyContext.neighbour_radius`) given the car's priority (`SafetyFilter._layers`);
+    None if there are none."""
+    if radius is None:
+        return None
+    uav = np.flatnonzero(rows.kind == UAV)
+    stale = uav[np.asarray(radius)[rows.index[uav]] > 0.0]
+    if not len(stale):
+        return None
+    kind = rows.kind.copy()
+    kind[stale] = TARGET
+    return kind
 
 
 _ZEROS3 = np.zeros(3)
