@@ -14,6 +14,9 @@ sequences (`SearchOptions.knots` knots per agent) that minimises the least barri
 closed loop (`barrier_margin`), every candidate on the same world seed; it runs on the first
 ``--search-worlds`` worlds (default 12: one per grid cell), searching shielded and unshielded apart.
 
+``--obstacles MIN MAX`` and ``--corridor M`` make the worlds denser than the default random
+world (8-16 obstacles, 2.5 m of free corridor along the car's path).
+
 Prints and writes OUT/report.md (violations per million agent-steps by kind, least true
 clearances, per grid cell totals, shield statuses, failing shielded runs), OUT/metrics.json
 (every run and the tables) and OUT/config.json (`uavtrack_env.provenance.config_record`).
@@ -408,7 +411,7 @@ FAMILIES: dict[str, Factory] = {
     "flee": seeker("flee"),
     "random-held": random_held,
 }
-"""Every closed-loop family by name (``mixed`` and the search are added below)."""
+"""Every closed-loop family by name (``mixed``, the search and `AFTER_SEARCH` are added below)."""
 MIXABLE = tuple(FAMILIES)
 """The families ``mixed`` draws from."""
 FAMILIES["mixed"] = mixed
@@ -739,7 +742,8 @@ def _table(key: str, rows: list[tuple[str, dict[str, Any]]]) -> list[str]:
 
 
 def _density(meta: dict[str, Any]) -> str:
-    """ " (24-48 obstacles, corridor 1.5 m)" for worlds other than the default random ones."""
+    """The worlds' density for the report's header, e.g. " (24-48 obstacles, corridor 1.5 m)";
+    empty for the default random worlds."""
     parts = []
     if meta.get("n_obstacles") is not None:
         lo, hi = meta["n_obstacles"]
