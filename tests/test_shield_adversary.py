@@ -190,6 +190,28 @@ def test_block_car_posts_the_team_low_in_front_of_the_car():
         env.close()
 
 
+def test_block_and_press_sends_the_odd_agents_at_their_partners():
+    """block-and-press: the even agents fly block-car's posts; each odd one flies at full command
+    at the point 0.5 m above the even agent before it."""
+    world = sa.WorldSpec(0, 3, "integrator", 0.0, 14)
+    env = sa.make_env(world, 400, None, {"n_obstacles": (0, 0)})
+    try:
+        obs, infos = env.reset(seed=14)
+        press = sa.FAMILIES["block-and-press"](env, np.random.default_rng(2))
+        block = sa.FAMILIES["block-car"](env, np.random.default_rng(2))
+        pressed, plain = press(obs, infos), block(obs, infos)
+        for a in ("uav_0", "uav_2"):
+            np.testing.assert_array_equal(pressed[a], plain[a])
+        own = infos["uav_1"]["own"]
+        goal = infos["uav_0"]["own"]["position"] + [0.0, 0.0, 0.5]
+        way = cam_to_world(own["yaw"]) @ pressed["uav_1"][:3]
+        aim = goal - own["position"]
+        assert way @ aim / (np.linalg.norm(way) * np.linalg.norm(aim)) > 1 - 1e-9
+        assert np.abs(pressed["uav_1"][:3]).max() == pytest.approx(1.0)
+    finally:
+        env.close()
+
+
 # ------------------------------------------------------------------------ a few worlds
 STEPS = 200
 CELLS = {
@@ -284,28 +306,6 @@ def test_uavs_posted_in_the_cars_path_among_dense_obstacles_are_never_hit(world)
     assert run["least"]["car"] > 0.0 and run["agent_steps"] == 400 * world.n
     if world.n == 10 and world.dynamics == "lag":
         assert run["statuses"].get("fallback", 0) > 0  # the rows do conflict
-
-
-def test_block_and_press_sends_the_odd_agents_at_their_partners():
-    """block-and-press: the even agents fly block-car's posts; each odd one flies at full command
-    at the point 0.5 m above the even agent before it."""
-    world = sa.WorldSpec(0, 3, "integrator", 0.0, 14)
-    env = sa.make_env(world, 400, None, {"n_obstacles": (0, 0)})
-    try:
-        obs, infos = env.reset(seed=14)
-        press = sa.FAMILIES["block-and-press"](env, np.random.default_rng(2))
-        block = sa.FAMILIES["block-car"](env, np.random.default_rng(2))
-        pressed, plain = press(obs, infos), block(obs, infos)
-        for a in ("uav_0", "uav_2"):
-            np.testing.assert_array_equal(pressed[a], plain[a])
-        own = infos["uav_1"]["own"]
-        goal = infos["uav_0"]["own"]["position"] + [0.0, 0.0, 0.5]
-        way = cam_to_world(own["yaw"]) @ pressed["uav_1"][:3]
-        aim = goal - own["position"]
-        assert way @ aim / (np.linalg.norm(way) * np.linalg.norm(aim)) > 1 - 1e-9
-        assert np.abs(pressed["uav_1"][:3]).max() == pytest.approx(1.0)
-    finally:
-        env.close()
 
 
 @pytest.mark.slow
