@@ -354,9 +354,8 @@ class BlockAndPress(BlockCar):
         for i in range(1, len(names), 2):
             a, below = names[i], names[i - 1]
             if a in out and below in infos:
-                own = infos[a]["own"]
                 goal = infos[below]["own"]["position"] + np.array([0.0, 0.0, 0.5])
-                out[a][:3] = _to_box(world_to_cam_vec(goal - own["position"], own["yaw"]))
+                out[a] = _towards(infos[a], goal, out[a][3])
         return out
 
 

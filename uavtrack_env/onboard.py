@@ -517,7 +517,7 @@ class OnboardAgent:
         out, j = self._seen
         own = out.data[j]
         done = self.filter.certify_pose(u, float(own[3]), own[4:7], rows, self.neighbour_ids())
-        if done[1].status != "fallback":
+        if not done[1].gave_car_up:  # no context to build
             return done
         return self.filter.climb_over_car(u, self.context(), done)
 
@@ -563,9 +563,7 @@ def _climb_over_car(
 ) -> Certificates:
     """`SafetyFilter.climb_over_car` for the agents whose certificate is a fallback that gave
     the car's row up (the others' certificates unchanged)."""
-    retry = [
-        j for j in np.flatnonzero(done.fallback).tolist() if "target" in done.report(j).gave_up
-    ]
+    retry = [j for j in np.flatnonzero(done.fallback).tolist() if done.report(j).gave_car_up]
     if not retry:
         return done
     action, reports = done.action.copy(), done.reports()

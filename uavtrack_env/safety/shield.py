@@ -189,6 +189,11 @@ class ShieldReport:
     """`qp_arrays.family_lows` of ``rows`` if the caller has it (`family_minima` reads it)."""
 
     @property
+    def gave_car_up(self) -> bool:
+        """A fallback that gave the car's row up (`SafetyFilter.climb_over_car` retries it)."""
+        return self.status == "fallback" and "target" in self.gave_up
+
+    @property
     def min_hard_h(self) -> float:
         """Smallest barrier value of the hard rows (< 0: the state is already unsafe)."""
         lows = self._lows()
@@ -355,8 +360,7 @@ class SafetyFilter:
         together with the car's frustum, not before it: a team-mate pressing from such a ball
         would otherwise push the UAV into the car (`baselines.shield_adversary`'s
         block-and-press)."""
-        report = done[1]
-        if report.status != "fallback" or "target" not in report.gave_up or ctx.target_frustum:
+        if not done[1].gave_car_up or ctx.target_frustum:
             return done
         ctx = replace(ctx, target_frustum=True)
         rows = self.row_builder(ctx)
