@@ -42,6 +42,32 @@ def test_close_frees_the_client_once():
     env.close()  # a second close is harmless
 
 
+@pytest.mark.parametrize("wrapped", [False, True])
+def test_a_closed_env_refuses_to_step_reset_or_render(wrapped):
+    env = uavtrack_v0.parallel_env(scenario="A", render_mode="rgb_array")
+    target = CBFShield(env) if wrapped else env
+    target.reset(seed=0)
+    actions = {a: np.zeros(4, np.float32) for a in env.agents}
+    target.close()
+    calls = {"step": lambda: target.step(actions), "reset": lambda: target.reset(seed=1)}
+    calls["render"] = env.render
+    for name, call in calls.items():
+        with pytest.raises(RuntimeError, match=rf"{name}\(\) called after close\(\).*new one"):
+            call()
+    assert env.num_cycles == 0
+
+
+def test_a_closed_vector_env_refuses_to_step_or_reset():
+    v = uavtrack_v0.vector_env(2, scenario="A")
+    v.reset(seed=0)
+    v.close()
+    with pytest.raises(RuntimeError, match=r"step\(\) called after close\(\).*vector_env"):
+        v.step(np.zeros((2, 3, 4)))
+    with pytest.raises(RuntimeError, match=r"reset\(\) called after close\(\).*vector_env"):
+        v.reset(seed=1)
+    v.close()
+
+
 @pytest.mark.parametrize(
     ("how", "wrapped"),
     [("deepcopy", False), ("copy", False), ("pickle", False), ("deepcopy", True), ("pickle", True)],

@@ -119,6 +119,8 @@ def test_agent_termination_ends_its_episode(make_view):
 
 def test_bad_action_raises_and_changes_nothing(make_view):
     view = make_view(others="expert")
+    with pytest.raises(RuntimeError, match=r"step\(\) called before reset\(\)"):
+        view.step(np.zeros(4))
     view.reset(seed=0)
     before = view.env.position.copy()
     estimate = view.expert.onboard["uav_1"].estimate

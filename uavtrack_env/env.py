@@ -251,6 +251,10 @@ class UAVTrackEnv(ParallelEnv):
     def reset(
         self, seed: int | None = None, options: dict | None = None
     ) -> tuple[dict[str, np.ndarray], dict[str, dict]]:
+        """Start an episode: seed (an int >= 0, or None to go on with the env's generator) ->
+        (observations, infos). ``options`` are ignored, as PettingZoo's API test expects (the env
+        is configured through ``uavtrack_v0.parallel_env(**config)``)."""
+        self._check_open("reset")
         if seed is not None or self.np_random is None:
             self.np_random, _ = seeding.np_random(seed)
         cfg = self.config
@@ -356,6 +360,7 @@ class UAVTrackEnv(ParallelEnv):
 
     def _check_can_act(self, actions: Any) -> None:
         """The episode is running and ``actions`` names exactly the live agents."""
+        self._check_open("step")
         if self.np_random is None:
             raise RuntimeError("step() called before reset(); call env.reset(seed=...) first")
         if not self.agents:
@@ -497,6 +502,7 @@ class UAVTrackEnv(ParallelEnv):
         if self.render_mode is None:
             gymnasium.logger.warn("render() called with render_mode=None; nothing to render")
             return None
+        self._check_open("render")
         if self.np_random is None:
             raise RuntimeError("render() called before reset()")
         snap = self.snapshot()
@@ -506,7 +512,15 @@ class UAVTrackEnv(ParallelEnv):
         return rendering.rgb_frame(self.world, self.config, self.layout, snap)
 
     def close(self) -> None:
+        """Release the PyBullet client (idempotent); the env cannot step or reset after it."""
         self.world.close()
+
+    def _check_open(self, call: str) -> None:
+        if self.world.cid < 0:
+            raise RuntimeError(
+                f"{call}() called after close(): this env has released its PyBullet client; "
+                "build a new one with uavtrack_v0.parallel_env(**config)"
+            )
 
     def __reduce_ex__(self, protocol):
         return self.world.__reduce_ex__(protocol)  # refuses: the world owns a live client

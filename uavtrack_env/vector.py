@@ -107,6 +107,7 @@ class UAVTrackVectorEnv:
         self, seed: int | None = None, options: dict | None = None
     ) -> tuple[np.ndarray, dict[str, Any]]:
         """Reset every world; world k with seed ``seed + k``."""
+        self._check_open("reset")
         if seed is not None and (isinstance(seed, bool) or not isinstance(seed, int | np.integer)):
             raise TypeError(f"seed must be an int or None, got {seed!r}")
         obs = np.zeros(self.observation_space.shape, np.float32)
@@ -275,6 +276,7 @@ class UAVTrackVectorEnv:
 
     def _checked(self, actions: Any) -> tuple[np.ndarray, np.ndarray]:
         """(u (K, n, 4) in SI units, clipped (K, n)) of valid actions; raises otherwise."""
+        self._check_open("step")
         if not self._started:
             raise RuntimeError("step() called before reset(); call env.reset(seed=...) first")
         try:
@@ -315,8 +317,16 @@ class UAVTrackVectorEnv:
 
     # ----------------------------------------------------------------- extras
     def close(self) -> None:
+        """Release every world's PyBullet client (idempotent); no step or reset after it."""
         for env in self.envs:
             env.close()
+
+    def _check_open(self, call: str) -> None:
+        if self.envs[0].world.cid < 0:
+            raise RuntimeError(
+                f"{call}() called after close(): the worlds have released their PyBullet "
+                "clients; build a new one with uavtrack_v0.vector_env(num_envs, **config)"
+            )
 
     def __enter__(self) -> UAVTrackVectorEnv:
         return self

@@ -90,6 +90,8 @@ class SingleAgentView(gymnasium.Env):
 
     def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict]:
         if self._done:
+            if self.env.unwrapped.np_random is None:
+                raise RuntimeError("step() called before reset(); call env.reset(seed=...) first")
             raise RuntimeError("the episode is over for this agent; call reset() first")
         live = self.env.agents
         others = {a: o for a, o in self._obs.items() if a != self.agent and a in live}
