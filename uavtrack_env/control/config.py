@@ -101,6 +101,11 @@ class NMPCConfig:
     tol: float = 3e-3
     """Primal and dual stopping tolerance of 'sqp'. 3e-3 stops after ~2.2 iterations (~3.6 at
     1e-4) with u_k within 1e-3 of Ipopt's (tol 1e-6) in the benchmark loop (BENCHMARKS.md, NMPC)."""
+    line_search_steps: int = 0
+    """Backtracking steps of the SQP's line search (sqpmethod's ``max_iter_ls``); 0: full steps.
+    From the shifted warm start the full step is the accepted one anyway (the same iterations and
+    solutions); skipping the merit evaluations makes a solve ~5 % faster. Convergence is judged
+    by `tol` either way, and a solve that does not converge goes to Ipopt (BENCHMARKS.md, NMPC)."""
     ipopt_tol: float = 1e-6
     """Stopping tolerance of 'ipopt' (the paper's solver, and the cold starts and rescues)."""
     expand: bool = True
@@ -141,6 +146,7 @@ class NMPCConfig:
         f.text("qpsol")  # any CasADi conic plugin name; CasADi reports unknown ones
         f.number("qrqp_min_lam", lo=0)
         f.integer("qrqp_max_iter", lo=1)
+        f.integer("line_search_steps", lo=0)
         f.number("tol", lo=0, lo_open=True)
         f.number("ipopt_tol", lo=0, lo_open=True)
         for name in ("expand", "rescue_with_ipopt"):

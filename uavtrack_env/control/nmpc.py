@@ -461,6 +461,7 @@ class NMPC:
                 "tol_pr": cfg.tol,
                 "tol_du": cfg.tol,
                 "max_iter": 1 if solver == "rti" else cfg.max_iter,
+                "max_iter_ls": cfg.line_search_steps,
                 "qpsol_options": self._qp_options(cfg),
             }
             if cfg.hessian == "gauss-newton":
