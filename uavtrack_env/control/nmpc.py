@@ -429,6 +429,8 @@ class NMPC:
         # NaN at a trial point is the solvers' to handle (the line search backtracks, Ipopt cuts
         # the step); a failed solve is reported in NMPCResult, not as one console line per NaN.
         common: dict = {
+            # the parameters' multipliers cost a gradient evaluation per solve (~8 %); unused
+            "calc_lam_p": False,
             "print_time": False,
             "expand": cfg.expand,
             "error_on_fail": False,
