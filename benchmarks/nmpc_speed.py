@@ -65,7 +65,7 @@ def run(preset: str, solver: str, steps: int, patch=None, **overrides) -> dict:
                 ipopt.reset()
                 du.append(float(np.abs(ipopt.solve(s, vq, safety_rows=rows).u - res.u).max()))
             (cold if k == 0 else times).append(res.solve_time_s)
-            iters.append(res.iterations)
+            iters.append(ctrl.last_stats()["iter_count"] if res.iterations < 0 else res.iterations)
             fails += not res.success
             rescues += "+ipopt" in res.solver_used
             s = _plant(s, res.u, vq)

@@ -213,8 +213,21 @@ def test_fallback_shifted_plan_after_real_failure() -> None:
     assert first.success and first.solver_used == "ipopt"
     res = ctrl.solve([0.7, 0.5, 0.6, REF[3] - 2.0], vq)
     assert not res.success
-    assert res.status == "fallback-shifted" and res.solver_status != "fallback-shifted"
+    assert res.status == "fallback-shifted" and res.solver_status == "Maximum_Iterations_Exceeded"
+    assert res.iterations == 1
     np.testing.assert_allclose(res.u, first.predicted_u[1])
+
+
+def test_a_converged_warm_solve_skips_the_statistics() -> None:
+    """The per-step solver raises on failure, so a converged solve reads no stats():
+    iterations -1, and `last_stats` has the count."""
+    ctrl = NMPC(REF, error_signal=False)
+    vq = np.array([0.5, 0.0, 0.0])
+    ctrl.solve([0.1, 0.05, 0.2, REF[3]], vq)
+    res = ctrl.solve([0.11, 0.05, 0.2, REF[3]], vq)
+    assert res.success and res.status == "Solve_Succeeded" and res.iterations == -1
+    stats = ctrl.last_stats()
+    assert stats["success"] and 1 <= stats["iter_count"] <= NMPCConfig().max_iter
 
 
 def test_ipopt_rescues_a_failed_sqp() -> None:
@@ -252,7 +265,8 @@ def test_fallback_shifted_when_solver_raises(monkeypatch: pytest.MonkeyPatch) ->
     def boom(args):
         raise RuntimeError("boom")
 
-    monkeypatch.setattr(ctrl, "_solver", type("B", (), {"call": staticmethod(boom)})())
+    broken = {"call": staticmethod(boom), "stats": lambda self: {}}
+    monkeypatch.setattr(ctrl, "_solver", type("B", (), broken)())
     for k in (1, 2):
         res = ctrl.solve([0.2, 0.1, 0.1, 1.0], vq)
         assert res.status == "fallback-shifted" and not res.success

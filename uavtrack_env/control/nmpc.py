@@ -54,6 +54,8 @@ class NMPCResult:
     status: str
     """Solver return status, or 'fallback-shifted' / 'fallback-hover'."""
     iterations: int
+    """Solver iterations; -1 for a warm solve that succeeded, whose statistics are not read
+    (CasADi's ``stats()`` costs ~65 us per solve; `NMPC.last_stats` reads them)."""
     solve_time_s: float
     predicted_s: np.ndarray
     """Predicted features (N_p+1, 4), psi relative to the reference (psi* +- pi)."""
@@ -437,6 +439,9 @@ class NMPC:
             "show_eval_warnings": False,
         }
         solver = self.cfg.solver
+        # The per-step solver raises on failure, so a success needs no stats() (`_call`);
+        # RTI's normal exit is the iteration limit, which only stats() tells apart.
+        loud = {"error_on_fail": solver != "rti"}
         ipopt_opts = {
             **common,
             "ipopt.print_level": 0,
@@ -470,7 +475,7 @@ class NMPC:
                 sopts["hess_lag"] = self._gauss_newton_hessian(nlp)
             else:
                 sopts["convexify_strategy"] = "regularize"
-        self._nlpsol = ca.nlpsol("nmpc", plug, nlp, {**sopts, **jit, "jit_name": "nmpc"})
+        self._nlpsol = ca.nlpsol("nmpc", plug, nlp, {**sopts, **loud, **jit, "jit_name": "nmpc"})
         self._solver_plugin = plug
 
     def _lqr_weight(self) -> np.ndarray:
@@ -697,13 +702,25 @@ class NMPC:
             raise ValueError(f"safety_rows b must be finite, got {b_in}")
         return A_in, b_in
 
+    def last_stats(self) -> dict:
+        """CasADi's statistics of the per-step solver's last call (return status, iterations,
+        time per function)."""
+        return self._solver.stats()
+
     def _call(self, solver, args: dict) -> tuple[bool, dict | None, str, int]:
-        """Run one nlpsol; success flag, solution, return status, iterations."""
+        """Run one nlpsol; success flag, solution, return status, iterations (-1: not read)."""
+        loud = solver is self._solver and self.cfg.solver != "rti"
         try:
             sol = solver.call(args)
+        except RuntimeError as err:  # the per-step solver failed, or a plugin raised
+            if not loud:
+                return False, None, f"exception: {err}", 0
             stats = solver.stats()
-        except RuntimeError as err:  # a plugin raising despite error_on_fail=False
-            return False, None, f"exception: {err}", 0
+            return False, None, str(stats.get("return_status", err)), stats.get("iter_count", 0)
+        if loud:  # it returned, so it converged
+            ok = bool(np.isfinite(sol["x"]).all())
+            return ok, sol, "Solve_Succeeded" if ok else "non-finite solution", -1
+        stats = solver.stats()
         status = str(stats.get("return_status", "unknown"))
         ok = bool(stats.get("success", False))
         if solver is self._solver and self.cfg.solver == "rti":
