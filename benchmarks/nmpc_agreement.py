@@ -46,7 +46,7 @@ def _checked(nmpc: NMPC, every: int, regular: list, slow: list, times: list):
     solve = nmpc.solve
 
     def checked(s, vq, aq=None, u_applied=None, safety_rows=None):
-        state = copy.deepcopy((nmpc._last, nmpc._s_pred))
+        state = copy.deepcopy(nmpc._last)
         t0 = time.perf_counter()
         res = solve(s, vq, aq, u_applied, safety_rows)
         dt = time.perf_counter() - t0
@@ -54,7 +54,7 @@ def _checked(nmpc: NMPC, every: int, regular: list, slow: list, times: list):
         if len(times) % every == 0 or dt > SLOW_S:
             reference.reference[:] = nmpc.reference
             reference.reset()
-            reference._last, reference._s_pred = state
+            reference._last = state
             ref = reference.solve(s, vq, aq, u_applied, safety_rows)
             if res.success and ref.success:
                 (slow if dt > SLOW_S else regular).append(float(np.abs(res.u - ref.u).max()))

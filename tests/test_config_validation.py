@@ -261,6 +261,7 @@ BAD = [
     case(NMPCConfig, "qpsol", None, T, r"qpsol must be a non-empty string, got None"),
     case(NMPCConfig, "qrqp_min_lam", NAN, V, rf"qrqp_min_lam must be {NONNEG}"),
     case(NMPCConfig, "qrqp_max_iter", 0, V, rf"qrqp_max_iter must be {INT} >= 1"),
+    case(NMPCConfig, "line_search_steps", -1, V, rf"line_search_steps must be {INT} >= 0"),
     case(NMPCConfig, "tol", 0.0, V, rf"tol must be {POS}"),
     case(NMPCConfig, "ipopt_tol", -1e-6, V, rf"ipopt_tol must be {POS}"),
     case(NMPCConfig, "expand", "true", T, r"expand must be True or False"),

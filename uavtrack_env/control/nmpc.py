@@ -529,8 +529,8 @@ class NMPC:
         self._lam_g: np.ndarray | None = None
         self._lam_x: np.ndarray | None = None
         self._fallback_count = 0
-        self._s_pred: np.ndarray | None = None  # s_m,k of (16), psi relative to psi*
-        self._last: tuple[np.ndarray, np.ndarray] | None = None  # (s_rel, vq) of last step
+        # (s_rel, vq, u) of the last step: s_m,k of (16) is predicted from them when needed
+        self._last: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
 
     def relative_state(self, s: np.ndarray) -> np.ndarray:
         """s with psi replaced by psi* + wrap(psi - psi*), so s - s* is the wrapped error."""
@@ -592,8 +592,7 @@ class NMPC:
             result_status = status
         else:
             u, X, Uplan, result_status = self._fallback(s_rel, vq)
-        self._s_pred = self.predict_one_step(s_rel, u, vq) if self.cfg.error_signal else None
-        self._last = (s_rel, vq)
+        self._last = (s_rel, vq, u.copy())
         return NMPCResult(
             u=u,
             success=ok,
@@ -610,16 +609,15 @@ class NMPC:
     def _error_signal(self, s_rel: np.ndarray, u_applied: np.ndarray | None) -> np.ndarray:
         """eps_k = s_k - s_m,k of eq. (16), psi wrapped, capped at `NMPCConfig.eps_max`.
 
-        s_m,k is the one-step prediction of the last step, redone with ``u_applied`` if given;
-        zero without a prediction or with `NMPCConfig.error_signal` off.
+        s_m,k is the one-step prediction from the last step's state with ``u_applied``, else
+        with the input that step returned; zero after a reset or with
+        `NMPCConfig.error_signal` off.
         """
-        eps = np.zeros(4)
-        if self.cfg.error_signal:
-            if u_applied is not None and self._last is not None:
-                self._s_pred = self.predict_one_step(self._last[0], u_applied, self._last[1])
-            if self._s_pred is not None:
-                eps = _capped_error(s_rel, self._s_pred, self._eps_cap)
-        return eps
+        if not self.cfg.error_signal or self._last is None:
+            return np.zeros(4)
+        s_prev, vq_prev, u_prev = self._last
+        s_pred = self.predict_one_step(s_prev, u_prev if u_applied is None else u_applied, vq_prev)
+        return _capped_error(s_rel, s_pred, self._eps_cap)
 
     def _initial_guess(
         self, s_rel: np.ndarray, vq: np.ndarray, aq: np.ndarray, w_d: float
