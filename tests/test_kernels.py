@@ -86,29 +86,38 @@ run_episode(env, expert, seed=0, steps=20, progress=True)
 @pytest.mark.slow
 def test_the_expert_compiles_its_filter_kernels_before_the_episode():
     """`ExpertPolicy.compile_kernels` (called by the runner before its loop) gives the
-    CBF-QP's correction and plan-row kernels the argument types of the closed loop's own calls:
-    a B0 episode with corrected actions adds no second compiled signature (fresh process)."""
+    CBF-QP's correction and plan-row kernels, the NMPC's one-step prediction and the lag
+    plant's rows of the fallback's car-frustum retry the argument types of the closed loop's
+    own calls: a B0 episode with corrected actions, and the retry's rows built from a live
+    context, add no second compiled signature (fresh process)."""
     script = """
+import dataclasses
 from baselines.evaluate import world_kwargs
 from uavtrack_env import uavtrack_v0
+from uavtrack_env.control.nmpc import _model_step
 from uavtrack_env.expert import ExpertPolicy
 from uavtrack_env.safety.qp_arrays import nearest_camera_rows
 from uavtrack_env.safety.qp_layers import certify_changed
+from uavtrack_env.safety.second_order import second_order_rows
+kernels = (certify_changed, nearest_camera_rows, _model_step, second_order_rows)
 env = uavtrack_v0.parallel_env(**world_kwargs("B", 0, 400, dynamics="lag", noise=True,
                                               render=False))
 obs, infos = env.reset(seed=0)
 expert = ExpertPolicy.from_env(env, "tuned", threads=1)
-assert not certify_changed.signatures and not nearest_camera_rows.signatures
+assert not any(k.signatures for k in kernels)
 expert.compile_kernels()
-compiled = list(certify_changed.signatures) + list(nearest_camera_rows.signatures)
+compiled = [list(k.signatures) for k in kernels]
 corrected = 0
 while env.agents:
     obs, _, _, _, infos = env.step(expert(obs, infos))
     corrected += sum(bool(s.last_report and s.last_report.active) for s in expert.planners.values())
-now = list(certify_changed.signatures) + list(nearest_camera_rows.signatures)
-print(len(compiled), corrected, now == compiled)
+    if env.num_cycles == 200:
+        onboard = expert.onboard["uav_0"]
+        onboard.filter.rows(dataclasses.replace(onboard.context(), target_frustum=True))
+now = [list(k.signatures) for k in kernels]
+print(sum(map(len, compiled)), corrected, now == compiled)
 """
     run = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True)
     assert run.returncode == 0, run.stderr[-2000:]
     n_compiled, corrected, same = run.stdout.split()[-3:]
-    assert n_compiled == "2" and int(corrected) > 0 and same == "True", run.stdout
+    assert n_compiled == "4" and int(corrected) > 0 and same == "True", run.stdout

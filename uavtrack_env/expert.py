@@ -135,10 +135,13 @@ class ExpertPolicy:
         return {agent: self._record(plan) for agent, plan in zip(agents, plans, strict=True)}
 
     def compile_kernels(self) -> None:
-        """Compile the CBF-QP's correction and plan-row kernels now rather than in the episode
-        (`kernels.compile_filter_kernels`); nothing without the CBF."""
+        """Compile the CBF-QP's correction and plan-row kernels (`kernels.compile_filter_kernels`,
+        with the CBF) and the NMPC's one-step prediction (first used at the second step) now
+        rather than in the episode."""
         if self.use_cbf:
             compile_filter_kernels(self.onboard[self.agent_names[0]].filter)
+        for st in list(self.planners.values())[:1]:  # the planners exist after reset()
+            st.nmpc.predict_one_step(st.nmpc.reference, np.zeros(4), np.zeros(3))
 
     def close(self) -> None:
         """Stop the planning threads (a later call starts them again)."""

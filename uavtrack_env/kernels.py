@@ -4,7 +4,8 @@ The estimator, the rows and the CBF-QP's arrays are numba kernels compiled with 
 the first process on a machine compiles them (about a minute here), later ones load them in a
 second or two. `kernels_cached` lets a long-running command say so before it seems to hang;
 `compile_filter_kernels` builds the kernels an episode would otherwise build late: the
-correction at its first corrected action, the NMPC's plan rows at its first estimate.
+correction at its first corrected action, the NMPC's plan rows at its first estimate, and a lag
+plant's rows as the fallback's car-frustum retry builds them.
 """
 
 from __future__ import annotations
@@ -16,7 +17,7 @@ import numpy as np
 
 from .estimation.bank import _bank_step
 from .onboard_pass import observe_frame_step, observe_pass, observe_step
-from .safety.cbf import OBSTACLE, CBFRows
+from .safety.cbf import OBSTACLE, CBFRows, SafetyContext
 from .safety.qp_arrays import nominal_holds
 from .safety.qp_layers import certify_changed, certify_many
 
@@ -53,9 +54,11 @@ def compile_filter_kernels(safety_filter: SafetyFilter) -> None:
     """Compile now (or load from numba's cache) the kernels ``safety_filter`` calls late in an
     episode, with the argument types of its own calls: the CBF-QP's correction,
     `qp_layers.certify_changed` (at the first corrected action: on a machine's first run, a
-    pause of ~13 s in mid-episode), and the NMPC's plan rows, `qp_arrays.nearest_camera_rows`.
-    Certifies a hover that one obstacle row rejects; the filter is stateless, so nothing else
-    changes."""
+    pause of ~13 s in mid-episode), the NMPC's plan rows, `qp_arrays.nearest_camera_rows`,
+    and under a lag plant the rows `SafetyFilter.climb_over_car` builds from a context,
+    `second_order.second_order_rows` (at the first such fallback: ~6 s). Certifies a hover that
+    one obstacle row rejects and builds the rows of a small context; the filter is stateless,
+    so nothing else changes."""
     one = np.ones(1)
     rows = CBFRows(
         A=np.array([[1.0, 0.0, 0.0]]), b=-one, h=one, gamma=one, drift=0.0 * one,
@@ -63,3 +66,14 @@ def compile_filter_kernels(safety_filter: SafetyFilter) -> None:
     )  # fmt: skip
     safety_filter.certify_pose(np.zeros(4), 0.0, np.zeros(3), rows)
     safety_filter.camera_rows(rows, 0.0, 1)
+    if safety_filter.row_builder.lag_tau > 0.0:
+        safety_filter.rows(
+            SafetyContext(
+                position=np.array([0.0, 0.0, 2.0]), yaw=0.0,
+                neighbours=np.array([[3.0, 0.0, 2.0]]), neighbour_velocities=np.zeros((1, 3)),
+                obstacle_centers=np.array([[0.0, 5.0, 1.0]]),
+                obstacle_half_extents=np.ones((1, 3)), target_position=np.array([6.0, 6.0, 0.75]),
+                target_velocity=np.zeros(3), target_half_extents=np.array([2.3, 0.9, 0.75]),
+                target_heading=0.0, target_frustum=True, velocity=np.zeros(3),
+            )
+        )  # fmt: skip
