@@ -52,7 +52,8 @@ class NMPCResult:
     success: bool
     """True when the solver converged (or, for 'rti', when its single QP solved)."""
     status: str
-    """Solver return status, or 'fallback-shifted' / 'fallback-hover'."""
+    """Solver return status ('Solve_Succeeded' for every converged warm solve, whose statistics
+    are not read), or 'fallback-shifted' / 'fallback-hover'."""
     iterations: int
     """Solver iterations; -1 for a warm solve that succeeded, whose statistics are not read
     (CasADi's ``stats()`` costs ~65 us per solve; `NMPC.last_stats` reads them)."""
@@ -428,7 +429,7 @@ class NMPC:
         """The Ipopt solver of cold starts and rescues, and the configured solver; ``cold_jit``
         and ``jit``: their JIT options (`_jit_options`, or empty for interpreted)."""
         cfg = self.cfg
-        # NaN at a trial point is the solvers' to handle (the line search backtracks, Ipopt cuts
+        # NaN at a trial point is the solvers' to handle (a failed SQP goes to Ipopt, which cuts
         # the step); a failed solve is reported in NMPCResult, not as one console line per NaN.
         common: dict = {
             # the parameters' multipliers cost a gradient evaluation per solve (~8 %); unused
