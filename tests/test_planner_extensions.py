@@ -134,6 +134,27 @@ def test_per_stage_row_slacks_shift_with_their_stages() -> None:
     assert (ctrl._lbx[irow] == 0).all() and np.isinf(ctrl._ubx[irow]).all()
 
 
+def test_a_half_space_keeps_its_slot_when_the_rows_come_reordered() -> None:
+    """The shield lists its rows nearest-first, so their order changes from step to step; each
+    keeps the slot (and so the shifted multipliers) it had. Two controllers fed the same rows,
+    one of them permuted at the second step, build the same NLP and give the same plan."""
+    cfg = NMPCConfig(safety_rows=4, safety_row_stages=10)
+    A = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, 0.6, 0.8]])
+    b = np.array([0.2, 0.1, 0.5])
+    ordered, shuffled = NMPC(REF, cfg, error_signal=False), NMPC(REF, cfg, error_signal=False)
+    for ctrl in (ordered, shuffled):
+        ctrl.solve(S_OFF, VQ, safety_rows=(A, b))
+    step = S_OFF + np.array([0.01, 0.0, 0.0, 0.02])
+    first = ordered.solve(step, VQ, safety_rows=(A, b))
+    second = shuffled.solve(step, VQ, safety_rows=(A[[2, 0, 1]], b[[2, 0, 1]]))
+    assert first.success and second.success
+    assert shuffled._row_normals == ordered._row_normals
+    np.testing.assert_array_equal(second.u, first.u)
+    fewer = shuffled.solve(step, VQ, safety_rows=(A[[1]], b[[1]]))  # the row stays in slot 1
+    assert fewer.success and shuffled._row_normals[1] == A[1].tolist()
+    assert shuffled._row_normals[0] == [0.0, 0.0, 0.0]
+
+
 @pytest.mark.parametrize(
     "rows, match",
     [
