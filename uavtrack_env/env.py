@@ -516,11 +516,7 @@ class UAVTrackEnv(ParallelEnv):
         self.world.close()
 
     def _check_open(self, call: str) -> None:
-        if self.world.cid < 0:
-            raise RuntimeError(
-                f"{call}() called after close(): this env has released its PyBullet client; "
-                "build a new one with uavtrack_v0.parallel_env(**config)"
-            )
+        self.world.require_open(call, "uavtrack_v0.parallel_env(**config)")
 
     def __reduce_ex__(self, protocol):
         return self.world.__reduce_ex__(protocol)  # refuses: the world owns a live client

@@ -140,7 +140,8 @@ class ExpertPolicy:
         rather than in the episode."""
         if self.use_cbf:
             compile_filter_kernels(self.onboard[self.agent_names[0]].filter)
-        for st in list(self.planners.values())[:1]:  # the planners exist after reset()
+        st = next(iter(self.planners.values()), None)  # the planners exist after reset()
+        if st is not None:
             st.nmpc.predict_one_step(st.nmpc.reference, np.zeros(4), np.zeros(3))
 
     def close(self) -> None:

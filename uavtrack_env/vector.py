@@ -322,11 +322,7 @@ class UAVTrackVectorEnv:
             env.close()
 
     def _check_open(self, call: str) -> None:
-        if self.envs[0].world.cid < 0:
-            raise RuntimeError(
-                f"{call}() called after close(): the worlds have released their PyBullet "
-                "clients; build a new one with uavtrack_v0.vector_env(num_envs, **config)"
-            )
+        self.envs[0].world.require_open(call, "uavtrack_v0.vector_env(num_envs, **config)")
 
     def __enter__(self) -> UAVTrackVectorEnv:
         return self

@@ -215,6 +215,15 @@ class World:
         self._release()
         self.cid = -1
 
+    def require_open(self, call: str, build: str) -> None:
+        """Raise if `close` released the client: ``call`` is the caller's method, ``build``
+        the constructor to use instead."""
+        if self.cid < 0:
+            raise RuntimeError(
+                f"{call}() called after close(): its PyBullet client is released; build a new "
+                f"one with {build}"
+            )
+
     def __reduce_ex__(self, protocol):
         raise TypeError(
             "a uavtrack env owns a live PyBullet client, which cannot be copied or pickled; build "

@@ -440,9 +440,7 @@ class NMPC:
             "show_eval_warnings": False,
         }
         solver = self.cfg.solver
-        # The per-step solver raises on failure, so a success needs no stats() (`_call`);
-        # RTI's normal exit is the iteration limit, which only stats() tells apart.
-        loud = {"error_on_fail": solver != "rti"}
+        loud = {"error_on_fail": self._raises_on_failure}
         ipopt_opts = {
             **common,
             "ipopt.print_level": 0,
@@ -728,9 +726,15 @@ class NMPC:
         time per function)."""
         return self._solver.stats()
 
+    @property
+    def _raises_on_failure(self) -> bool:
+        """The per-step solver raises on failure, so a success needs no stats() (`_call`); not
+        RTI, whose normal exit is the iteration limit, which only stats() tells apart."""
+        return self.cfg.solver != "rti"
+
     def _call(self, solver, args: dict) -> tuple[bool, dict | None, str, int]:
         """Run one nlpsol; success flag, solution, return status, iterations (-1: not read)."""
-        loud = solver is self._solver and self.cfg.solver != "rti"
+        loud = solver is self._solver and self._raises_on_failure
         try:
             sol = solver.call(args)
         except RuntimeError as err:  # the per-step solver failed, or a plugin raised
