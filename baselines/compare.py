@@ -40,19 +40,28 @@ from . import evaluate
 class SB3Policy:
     """A trained SB3 model as ``policy(obs, infos) -> {agent: action}``, shared by all agents.
 
-    Observations are normalised with the saved VecNormalize statistics when given; actions are
-    the deterministic policy's (the distribution's mean).
+    Observations are stacked over the last ``frames`` steps as in training (`train.frames`;
+    `reset` starts a new episode), then normalised with the saved VecNormalize statistics when
+    given; actions are the deterministic policy's (the distribution's mean).
     """
 
-    def __init__(self, model: Any, obs_normalizer: Any | None = None) -> None:
+    def __init__(self, model: Any, obs_normalizer: Any | None = None, frames: int = 1) -> None:
+        from train.frames import FrameHistory
+
         self.model = model
         self.obs_normalizer = obs_normalizer
+        self.history = FrameHistory(frames)
+
+    def reset(self, layout: Any = None) -> None:
+        """A new episode: forget the observation history (`runner.run_episode` calls this)."""
+        self.history.reset()
 
     def __call__(self, obs: dict, infos: dict) -> dict[str, np.ndarray]:
         agents = list(obs)
         if not agents:
             return {}
-        batch = np.stack([np.asarray(obs[a], np.float32) for a in agents])
+        stacked = self.history(obs)
+        batch = np.stack([stacked[a] for a in agents])
         if self.obs_normalizer is not None:
             batch = self.obs_normalizer.normalize_obs(batch)
         actions, _ = self.model.predict(batch, deterministic=True)
@@ -60,9 +69,9 @@ class SB3Policy:
         return dict(zip(agents, actions, strict=True))
 
 
-def load_policy(model_path: Path, norm_path: Path | None = None) -> SB3Policy:
-    """A saved SB3 model (.zip) as a deterministic `SB3Policy`, with its VecNormalize
-    statistics (.pkl) when ``norm_path`` exists."""
+def load_policy(model_path: Path, norm_path: Path | None = None, frames: int = 1) -> SB3Policy:
+    """A saved SB3 model (.zip) as a deterministic `SB3Policy` over ``frames`` stacked
+    observations, with its VecNormalize statistics (.pkl) when ``norm_path`` exists."""
     from stable_baselines3 import PPO
 
     normalizer = None
@@ -70,7 +79,7 @@ def load_policy(model_path: Path, norm_path: Path | None = None) -> SB3Policy:
         with Path(norm_path).open("rb") as f:  # a VecNormalize without its venv: normalize_obs
             normalizer = pickle.load(f)
         normalizer.training = False
-    return SB3Policy(PPO.load(model_path, device="cpu"), normalizer)
+    return SB3Policy(PPO.load(model_path, device="cpu"), normalizer, frames)
 
 
 def load_run(run_dir: Path, cloned: bool = False) -> tuple[SB3Policy, dict]:
@@ -85,7 +94,7 @@ def load_run(run_dir: Path, cloned: bool = False) -> tuple[SB3Policy, dict]:
     if not model_path.exists():
         raise ValueError(f"{model_path} not found: expected the output directory of train.ppo")
     args = json.loads((run_dir / "args.json").read_text())
-    return load_policy(model_path, norm_path), args
+    return load_policy(model_path, norm_path, args.get("frame_stack", 1)), args
 
 
 def load_any_run(run_dir: Path) -> tuple[str, bool, Policy]:

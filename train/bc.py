@@ -26,23 +26,26 @@ from tqdm import tqdm
 from uavtrack_env.expert import ExpertPolicy
 from uavtrack_env.presets import ExpertConfig
 
+from .frames import FrameHistory
+
 
 @dataclass(frozen=True)
 class Learner:
     """A saved SB3 policy that acts while the expert labels its states (DAgger, Ross et al.
     2011): ``model`` (.zip) and its VecNormalize statistics ``normalizer`` (.pkl; none if None
-    or missing); with ``shield`` (an `ExpertConfig`) its actions pass `CBFShield` as in
-    shielded training."""
+    or missing), over ``frames`` stacked observations; with ``shield`` (an `ExpertConfig`) its
+    actions pass `CBFShield` as in shielded training."""
 
     model: Path
     normalizer: Path | None = None
     shield: ExpertConfig | None = None
+    frames: int = 1
 
     def policy(self) -> Any:
         """The deterministic policy (``policy(obs, infos) -> {agent: action}``)."""
         from baselines.compare import load_policy
 
-        return load_policy(self.model, self.normalizer)
+        return load_policy(self.model, self.normalizer, self.frames)
 
 
 def collect(
@@ -53,6 +56,7 @@ def collect(
     config: ExpertConfig | str | None = None,
     workers: int = 1,
     learner: Learner | None = None,
+    frames: int = 1,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Rollouts of a full episode each on ``make_env()`` worlds seeded ``seed + e``, labelled
     by the expert (``config``: its `ExpertConfig` or preset name, default 'tuned'). The expert
@@ -61,9 +65,11 @@ def collect(
     (``make_env`` must then be picklable, e.g. a `functools.partial`); the arrays are the same
     as with one.
 
-    Returns (observations (N, n_obs), expert actions (N, 4)), float32, one row per live
+    Returns (observations (N, frames * n_obs): each the last ``frames`` observations as
+    `train.frames.FrameHistory` stacks them; expert actions (N, 4)), float32, one row per live
     agent-step.
     """
+    FrameHistory(frames)  # a bad count fails here
     if episodes < 1:
         raise ValueError(f"episodes must be >= 1, got {episodes}")
     if workers < 1:
@@ -74,10 +80,12 @@ def collect(
     done: list[tuple[list, list]] = []
     if workers == 1:
         for s in seeds:
-            done.append(_episode(make_env, config, s, threads=None, learner=learner))
+            done.append(_episode(make_env, config, s, None, learner, frames))
             bar.update()
     else:
-        run = functools.partial(_episode, make_env, config, threads=1, learner=learner)
+        run = functools.partial(
+            _episode, make_env, config, threads=1, learner=learner, frames=frames
+        )
         with multiprocessing.get_context("spawn").Pool(min(workers, episodes)) as pool:
             for pairs in pool.imap(run, seeds):  # in seed order
                 done.append(pairs)
@@ -94,9 +102,11 @@ def _episode(
     seed: int,
     threads: int | None,
     learner: Learner | None = None,
+    frames: int = 1,
 ) -> tuple[list, list]:
-    """One episode's (observations, expert actions) of every live agent-step; the expert acts,
-    or the ``learner`` acts (shielded if it says so) and the expert is told what was applied."""
+    """One episode's (stacked observations, expert actions) of every live agent-step; the
+    expert acts, or the ``learner`` acts (shielded if it says so) and the expert is told what
+    was applied."""
     env = make_env()
     acting = None
     if learner is not None:
@@ -107,11 +117,13 @@ def _episode(
             env = CBFShield(env, learner.shield)
     obs, infos = env.reset(seed=seed)
     expert = ExpertPolicy.from_env(env.unwrapped, config, threads)
+    history = FrameHistory(frames)
     obs_rows, act_rows = [], []
     while env.agents:
         labels = expert(obs, infos)
+        stacked = history(obs)
         for agent, a in labels.items():
-            obs_rows.append(obs[agent])
+            obs_rows.append(stacked[agent])
             act_rows.append(a)
         actions = labels if acting is None else acting(obs, infos)
         obs, _, _, _, infos = env.step(actions)

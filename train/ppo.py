@@ -79,6 +79,7 @@ ENV_FIELDS = (
     "cost_limit",
     "lambda_lr",
     "intervention_penalty",
+    "frame_stack",
     *WORLD_FIELDS,
 )
 """Arguments that define the training env; ``--resume`` takes them from the run's args.json."""
@@ -133,6 +134,13 @@ class Args:
     clip_range: float = field(default=0.2, metadata={"help": "PPO clip range"})
     ent_coef: float = field(default=0.0, metadata={"help": "entropy bonus"})
     net_arch: str = field(default="128,128", metadata={"help": "hidden sizes of pi and vf"})
+    frame_stack: int = field(
+        default=1,
+        metadata={
+            "help": "observations per policy input, oldest first (2: the car's motion in the "
+            "image; SB3 VecFrameStack, train.frames)"
+        },
+    )
     log_std_init: float = field(
         default=-2.0,
         metadata={"help": "initial log std of the Gaussian policy (-2: 0.14, i.e. 1.4 m/s)"},
@@ -266,7 +274,7 @@ def make_args(**given: Any) -> Args:
     args.out = Path(args.out)
     positive = (
         "timesteps", "n_envs", "n_uavs", "max_cycles", "n_steps", "batch_size", "log_every",
-        "bc_workers",
+        "bc_workers", "frame_stack",
     )  # fmt: skip
     for name in positive:
         if int(getattr(args, name)) < 1:
@@ -318,11 +326,11 @@ def env_fn(args: Args):
 
 def make_vec_env(args: Args, lambda_init: float = 0.0):
     """The rows' VecEnv -> AgentVecMonitor (-> InterventionPenalty) (-> LagrangianReward)
-    (-> VecNormalize), seeded.
+    (-> VecFrameStack) (-> VecNormalize), seeded.
 
     `VectorSharedPolicyVecEnv`: every world in one batched step, shielded by `VectorCBFShield`
     with ``--shield``."""
-    from stable_baselines3.common.vec_env import VecNormalize
+    from stable_baselines3.common.vec_env import VecFrameStack, VecNormalize
 
     from uavtrack_env.wrappers.sb3 import AgentVecMonitor, VectorSharedPolicyVecEnv
 
@@ -336,6 +344,8 @@ def make_vec_env(args: Args, lambda_init: float = 0.0):
         vec = InterventionPenalty(vec, args.intervention_penalty)
     if args.lagrangian:
         vec = LagrangianReward(vec, lagrangian_settings(args, lambda_init))
+    if args.frame_stack > 1:
+        vec = VecFrameStack(vec, args.frame_stack)
     if args.normalize:
         vec = VecNormalize(vec, gamma=args.gamma)
     vec.seed(args.seed)
@@ -370,9 +380,11 @@ def save_checkpoint(model, vec, ckdir: Path) -> None:
 
 
 # ---------------------------------------------------------------------- train
-def demonstrations(args: Args) -> tuple[np.ndarray, np.ndarray]:
+def demonstrations(args: Args, width: int) -> tuple[np.ndarray, np.ndarray]:
     """The expert's (observations, actions) on unshielded training worlds, cached in a .npz;
-    a resumed run with DAgger labels (DIR/dagger.npz) takes those, as its anchor did."""
+    a resumed run with DAgger labels (DIR/dagger.npz) takes those, as its anchor did.
+    ``width``: the policy's input size (``--frame-stack`` observations), which a cached file
+    must have."""
     from train import bc
 
     path = Path(args.bc_demos or args.out / "demos.npz")
@@ -380,12 +392,19 @@ def demonstrations(args: Args) -> tuple[np.ndarray, np.ndarray]:
         path = args.out / "dagger.npz"
     if path.exists():
         with np.load(path) as d:
-            print(f"behaviour cloning: {len(d['obs'])} samples from {path}")
-            return d["obs"], d["actions"]
+            obs, actions = d["obs"], d["actions"]
+        if obs.shape[1] != width:
+            raise ValueError(
+                f"{path} holds observations of width {obs.shape[1]}, but the policy's input "
+                f"is {width} (--frame-stack {args.frame_stack}); record the demonstrations "
+                "again with another --bc-demos path"
+            )
+        print(f"behaviour cloning: {len(obs)} samples from {path}")
+        return obs, actions
     make = env_fn(args)
     obs, actions = bc.collect(
         make, args.bc_episodes, BC_SEED + args.seed, args.progress, expert_settings(args),
-        args.bc_workers,
+        args.bc_workers, frames=args.frame_stack,
     )  # fmt: skip
     path.parent.mkdir(parents=True, exist_ok=True)
     np.savez_compressed(path, obs=obs, actions=actions)
@@ -407,7 +426,8 @@ def train(args: Args):
     previous = _previous_calls(args)
     model, vec = model_and_env(args, previous.get("lagrangian_lambda", 0.0))
     bc_stats: dict = {}
-    demos = demonstrations(args) if args.bc_episodes > 0 else None  # loaded once
+    width = model.observation_space.shape[0]
+    demos = demonstrations(args, width) if args.bc_episodes > 0 else None  # loaded once
     if args.resume is None and demos is not None:
         bc_stats = _clone_expert(args, model, vec, demos, ckdir)
         for r in range(args.dagger_rounds):
@@ -496,7 +516,7 @@ def _video_recorder(args: Args, vec):
     shield = expert_settings(args) if args.shield else None
 
     def record(callback, name: str) -> None:
-        policy = SB3Policy(callback.model, normalizer)
+        policy = SB3Policy(callback.model, normalizer, args.frame_stack)
         path = record_policy(
             policy,
             args.out / "videos",
@@ -597,11 +617,14 @@ def _dagger_round(args: Args, r: int, demos: tuple, ckdir: Path) -> tuple:
     from train import bc
 
     shield = expert_settings(args) if args.shield else None
-    learner = bc.Learner(ckdir / "ppo_0_steps.zip", ckdir / "ppo_vecnormalize_0_steps.pkl", shield)
+    learner = bc.Learner(
+        ckdir / "ppo_0_steps.zip", ckdir / "ppo_vecnormalize_0_steps.pkl", shield,
+        args.frame_stack,
+    )  # fmt: skip
     seed = DAGGER_SEED + args.seed + r * args.dagger_episodes
     obs, actions = bc.collect(
         env_fn(args), args.dagger_episodes, seed, args.progress, expert_settings(args),
-        args.bc_workers, learner,
+        args.bc_workers, learner, args.frame_stack,
     )  # fmt: skip
     print(f"DAgger round {r + 1}: {len(obs)} labelled states")
     demos = (np.concatenate([demos[0], obs]), np.concatenate([demos[1], actions]))
@@ -690,7 +713,7 @@ def evaluate_model(model, vec, args: Args) -> list[dict]:
     normalizer = vec if isinstance(vec, VecNormalize) else None
     if normalizer is not None:
         normalizer.training = False
-    policy = SB3Policy(model, normalizer)
+    policy = SB3Policy(model, normalizer, args.frame_stack)
     steps = max(1, round(args.eval_duration / DT))
     label = policy_label(args.shield, args.lagrangian)
     shield = expert_settings(args) if args.shield else None
