@@ -1,7 +1,8 @@
 """Training throughput of shared-parameter PPO, with and without the CBF shield.
 
     PYTHONPATH=. python benchmarks/train_speed.py [--timesteps 36864] [--repeats 3] [--n-envs K]
-        [--n-epochs E] [--batch-size B] [--net-arch 128,128]
+        [--n-epochs E] [--batch-size B] [--net-arch 128,128] [--frame-stack K]
+        [--target-kl 0.01 --learning-rate 5e-5 --log-std-init -3.5]
 
 Per configuration, the median over repeats of: agent-steps/s of ``PPO.learn`` (rollouts + updates
 of the model `train.ppo` builds, with its defaults unless given) and of stepping train.ppo's
@@ -78,14 +79,22 @@ def main() -> None:
     ap.add_argument("--n-epochs", type=int, help="PPO epochs per rollout (train.ppo's default)")
     ap.add_argument("--batch-size", type=int, help="PPO minibatch (train.ppo's default)")
     ap.add_argument("--net-arch", help="hidden sizes of pi and vf (train.ppo's default)")
+    ap.add_argument("--frame-stack", type=int, help="observations per input (train.ppo's default)")
+    ap.add_argument("--target-kl", type=float, help="early stop of an update's epochs")
+    ap.add_argument("--learning-rate", type=float, help="Adam step (train.ppo's default)")
+    ap.add_argument("--log-std-init", type=float, help="initial log std (train.ppo's default)")
     args = ap.parse_args()
-    given = {k: getattr(args, k) for k in ("n_envs", "n_epochs", "batch_size", "net_arch")}
+    names = ("n_envs", "n_epochs", "batch_size", "net_arch", "frame_stack", "target_kl",
+             "learning_rate", "log_std_init")  # fmt: skip
+    given = {k: getattr(args, k) for k in names}
     chosen = ppo_args(False, 0, **given)
     warnings.simplefilter("ignore")
     print(
         f"machine: {platform.processor() or platform.machine()}, python "
         f"{platform.python_version()}; {chosen.n_envs} worlds x 3 UAVs, PPO minibatch "
-        f"{chosen.batch_size}, {chosen.n_epochs} epochs, net {chosen.net_arch}; "
+        f"{chosen.batch_size}, {chosen.n_epochs} epochs, net {chosen.net_arch}, "
+        f"{chosen.frame_stack} frame(s), target KL {chosen.target_kl or 'off'}, learning rate "
+        f"{chosen.learning_rate:g}, log std {chosen.log_std_init:g}; "
         f"{args.timesteps} agent-steps, median of {args.repeats}"
     )
     res, shares = {}, {}
