@@ -84,7 +84,8 @@ ENV_FIELDS = (
     "frame_stack",
     *WORLD_FIELDS,
 )
-"""Arguments that define the training env; ``--resume`` takes them from the run's args.json."""
+"""Arguments that define the training env and the policy's input; ``--resume`` takes them from
+the run's args.json."""
 _WORLD_HELP = {f.name: f.metadata for f in dataclasses.fields(TrainingWorld)}
 BC_STATS = ("bc_samples", "bc_val_loss_first_epoch", "bc_val_loss")
 """What `train.bc.pretrain` reports (kept in args.json across ``--resume``)."""
