@@ -118,3 +118,29 @@ def test_a_frame_stacked_run_clones_trains_and_evaluates(tmp_path):
 def test_bad_frame_stack_argument(tmp_path):
     with pytest.raises(ValueError, match="--frame-stack must be >= 1"):
         ppo.parse_args(["--out", str(tmp_path), "--frame-stack", "0"])
+
+
+class _Recorder:
+    """A stand-in SB3 model: remembers the inputs it is asked to act on."""
+
+    def __init__(self) -> None:
+        self.batches: list[np.ndarray] = []
+
+    def predict(self, batch, deterministic=True):
+        self.batches.append(np.array(batch))
+        return np.zeros((len(batch), 4), np.float32), None
+
+
+def test_an_sb3_policy_stacks_its_inputs_and_forgets_them_between_episodes():
+    from baselines.compare import SB3Policy
+
+    model = _Recorder()
+    policy = SB3Policy(model, None, frames=2)
+    first, second = np.full(3, 1.0, np.float32), np.full(3, 2.0, np.float32)
+    policy({"uav_0": first}, {})
+    policy({"uav_0": second}, {})
+    policy.reset()  # `runner.run_episode` calls it after the env's reset
+    policy({"uav_0": second}, {})
+    np.testing.assert_array_equal(model.batches[0], [[0, 0, 0, 1, 1, 1]])
+    np.testing.assert_array_equal(model.batches[1], [[1, 1, 1, 2, 2, 2]])
+    np.testing.assert_array_equal(model.batches[2], [[0, 0, 0, 2, 2, 2]])
