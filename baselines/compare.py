@@ -27,6 +27,7 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
+from train.frames import FrameHistory
 from uavtrack_env import uavtrack_v0
 from uavtrack_env.config import DT
 from uavtrack_env.presets import ExpertConfig, add_preset_arguments, expert_config_from
@@ -46,8 +47,6 @@ class SB3Policy:
     """
 
     def __init__(self, model: Any, obs_normalizer: Any | None = None, frames: int = 1) -> None:
-        from train.frames import FrameHistory
-
         self.model = model
         self.obs_normalizer = obs_normalizer
         self.history = FrameHistory(frames)
