@@ -31,14 +31,29 @@ METRICS_UAV_KEYS = frozenset(
 """Per-UAV keys that metrics.json must hold (issue 3's schema)."""
 
 
+def car_inside(p, center, half, clearance, yaw=0.0) -> float:
+    """Reference for the car box barrier's inside (`barrier_rows.box_sdist`, grounded):
+    ``-e_xy (t + clearance)``, e_xy the depth inside the nearest side, t under the top; 0
+    outside."""
+    c, s = np.cos(yaw), np.sin(yaw)
+    d = np.asarray(p, float) - center
+    local = np.array([c * d[0] + s * d[1], -s * d[0] + c * d[1], d[2]])
+    if not (np.abs(local) < half).all():
+        return 0.0
+    side = np.min(np.asarray(half)[:2] - np.abs(local[:2]))
+    return float(-side * (half[2] - local[2] + clearance))
+
+
 def car_h(p, center, half, clearance, yaw=0.0) -> float:
     """Reference for the car's frustum barrier (`barrier_rows.target_row`): horizontal distance
-    to the (yawed) footprint plus height over the top minus sqrt(2) clearance."""
+    to the (yawed) footprint plus height over the top minus sqrt(2) clearance; inside the box
+    plus `car_inside` per clearance."""
     c, s = np.cos(yaw), np.sin(yaw)
     d = np.asarray(p, float) - center
     local = np.array([c * d[0] + s * d[1], -s * d[0] + c * d[1]])
     out = np.maximum(np.abs(local) - np.asarray(half)[:2], 0.0)
-    return float(np.linalg.norm(out) + d[2] - half[2] - np.sqrt(2.0) * clearance)
+    frustum = np.linalg.norm(out) + d[2] - half[2] - np.sqrt(2.0) * clearance
+    return float(frustum + car_inside(p, center, half, clearance, yaw) / clearance)
 
 
 def growing_car_case(rng: np.random.Generator):

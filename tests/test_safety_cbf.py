@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from scipy.optimize import minimize_scalar
 
-from tests.conftest import car_h, growing_car_case
+from tests.conftest import car_h, car_inside, growing_car_case
 from uavtrack_env.config import EnvConfig
 from uavtrack_env.geometry import cam_to_world
 from uavtrack_env.safety import SafetyContext, SafetyFilter, build_rows, check_eq28
@@ -28,16 +28,24 @@ from uavtrack_env.safety.occlusion import occluder_points
 EPS = 1e-6
 
 
-def box_h(p, center, half, clearance, yaw=0.0):
-    """Independent reference: squared distance to a (yawed) box minus clearance^2 (outside)."""
+def box_h(p, center, half, clearance, yaw=0.0, grounded=False):
+    """Independent reference: squared distance to a (yawed) box minus clearance^2 (outside);
+    inside minus the squared depth, or for a ``grounded`` box (the car) `car_inside`."""
     c, s = np.cos(yaw), np.sin(yaw)
     d = np.asarray(p) - center
     local = np.array([c * d[0] + s * d[1], -s * d[0] + c * d[1], d[2]])
     out = np.maximum(np.abs(local) - half, 0.0)
     if (np.abs(local) < half).all():
+        if grounded:
+            return car_inside(p, center, half, clearance, yaw) - clearance**2
         depth = np.min(half - np.abs(local))
         return -(depth**2) - clearance**2
     return out @ out - clearance**2
+
+
+def car_box_h(p, center, half, clearance, yaw=0.0):
+    """`box_h` of the car's grounded box."""
+    return box_h(p, center, half, clearance, yaw, grounded=True)
 
 
 def occl_h(p, p_o, n, theta_star):
@@ -124,7 +132,7 @@ def test_obstacle_and_moving_target_rows_match_finite_differences(seed):
         ctx.target_half_extents,
         ctx.target_heading,
     )
-    check_family(rows, TARGET, lambda j, V, t: box_h(p + t * V, q + t * vq, hq, cl, th), rng)
+    check_family(rows, TARGET, lambda j, V, t: car_box_h(p + t * V, q + t * vq, hq, cl, th), rng)
     assert rows.drift[rows.kind == TARGET][0] != 0.0  # the target's motion enters b
 
     rows = build_rows(ctx, cbf, obstacle_model="point")
@@ -153,7 +161,7 @@ def test_a_growing_car_box_row_matches_finite_differences(seed, frustum):
         target_frustum=frustum,
     )
     rows = build_rows(ctx, cbf)
-    ref = car_h if frustum else box_h
+    ref = car_h if frustum else car_box_h
     check_family(
         rows,
         TARGET,
@@ -411,25 +419,34 @@ def test_edges_occluder_sees_a_cube_whose_axis_point_misses():
     assert occl_h(p, edges, q - p, ts) < -np.radians(10)  # 13.4 deg, deep inside the cone
 
 
-@pytest.mark.parametrize("below", [True, False])
-def test_inside_the_car_box_the_way_out_is_never_its_bottom(below):
-    """A UAV inside the car's box below its centre is sent up or sideways (the car stands on the
-    ground), and the row's h is the grounded box barrier; over the footprint the frustum sends
-    it straight up, h its height over the top minus sqrt(2) clearance."""
+@pytest.mark.parametrize("frustum", [False, True])
+@pytest.mark.parametrize("z", [0.3, 1.5, 1.74])
+def test_inside_the_car_box_the_way_out_is_up_and_out(z, frustum):
+    """A UAV inside the car's box (which the car may fill up to its top) is sent up or out
+    through the nearest side, never down and never further in, even just under the top: h is
+    -e_xy (t + clearance) - clearance^2 (e_xy = 2.6 m inside the nearest side, t under the top),
+    per clearance in the frustum; over the top the frustum sends it straight up."""
     cbf = CBFConfig().resolve()
     cl, z0 = cbf.obstacle_clearance, np.zeros(3)
     q, half = np.array([0.0, 0.0, 0.75]), np.array([3.0, 3.0, 1.0])
-    p = np.array([0.4, -0.2, 0.3 if below else 1.5])
-    ax, ay, az, h, _drift = target_row(p, q, z0, half, 0.0, cl, z0, False)
-    assert h == pytest.approx(h_box(p, q, half, cl, grounded=True)[0])
-    top = q[2] + half[2] - p[2]
-    assert h == pytest.approx(-(top**2) - cl**2)
-    assert az < 0 and ax == 0 and ay == 0  # -grad h . V <= b: an upward velocity
-    for z in (p[2], 4.0):
+    p = np.array([0.1, -0.4, z])
+    ax, ay, az, h, _drift = target_row(p, q, z0, half, 0.0, cl, z0, frustum)
+    inside = -2.6 * (1.75 - z + cl)
+    if frustum:
+        assert h == pytest.approx(z - 1.75 - np.sqrt(2) * cl + inside / cl)
+        assert h == pytest.approx(car_h(p, q, half, cl))
+    else:
+        assert h == pytest.approx(inside - cl**2)
+        assert h == pytest.approx(h_box(p, q, half, cl, grounded=True)[0])
+    assert az < 0  # -grad h . V <= b: climbing helps
+    assert ax == 0 and ay > 0  # and so does leaving through the nearest side, -y
+    for inward in ([0.0, 1.0, 0.0], [0.0, 0.0, -1.0]):  # away from the nearest side, down
+        assert target_row(p + 0.01 * np.array(inward), q, z0, half, 0.0, cl, z0, frustum)[3] < h
+    for top in (1.76, 4.0):  # over the footprint, above the top
         ax, ay, az, h, _drift = target_row(
-            p * [1, 1, 0] + [0, 0, z], q, z0, half, 0.0, cl, z0, True
+            p * [1, 1, 0] + [0, 0, top], q, z0, half, 0.0, cl, z0, True
         )
-        assert h == pytest.approx(z - 1.75 - np.sqrt(2) * cl)
+        assert h == pytest.approx(top - 1.75 - np.sqrt(2) * cl)
         assert az == -1.0 and ax == 0 and ay == 0
 
 

@@ -244,13 +244,15 @@ def test_fallback_never_trades_the_floor_for_an_estimate_or_a_teammate(solver, r
 
 @pytest.mark.parametrize("solver", BACKENDS)
 def test_fallback_keeps_the_teammates_rows_over_the_cars(solver):
-    """A team-mate 2.2 m above and a car estimate around the UAV whose nearest face is its top: the
-    car's row is given up first, the pair row (25) holds."""
+    """A team-mate 2.2 m above and a car estimate around the UAV, 9 m inside its nearest side
+    (no command leaves it fast enough): the car's row is given up first, the pair row (25)
+    holds."""
     f = SafetyFilter(solver=solver)
     ctx = ctx_with(
         position=[0.0, 0.0, 5.0],
         neighbours=[[0.0, 0.0, 7.2]],
         target_position=[-1.0, 0.0, 5.0],
+        target_half_extents=[10.0, 10.0, 0.75],
         target_heading=0.0,
     )
     out, rep = f.certify(cam_u([0.0, 0.0, 0.0], ctx.yaw), ctx)

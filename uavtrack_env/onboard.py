@@ -517,9 +517,9 @@ class OnboardAgent:
         out, j = self._seen
         own = out.data[j]
         done = self.filter.certify_pose(u, float(own[3]), own[4:7], rows, self.neighbour_ids())
-        if not done[1].gave_car_up:  # no context to build
+        if done[1].status != "fallback":  # no context to build
             return done
-        return self.filter.climb_over_car(u, self.context(), done)
+        return self.filter.settle(u, self.context(), done)
 
     def neighbour_ids(self, known: int | None = None) -> tuple[int, ...]:
         """The team indices of the team-mates believed at the latest observation (they name
@@ -551,27 +551,23 @@ def certify_team(agents: Sequence[OnboardAgent], u: np.ndarray) -> Certificates:
             u, data[:, 3], data[:, 4:7], lambda j: out.rows(js[j]), ids, packed
         )
         done.lows, done.rows_at = lows, (out.ints[0], out.ints[1], begin)
-        return _climb_over_car(agents, u, done)
+        return _settle(agents, u, done)
     ids = [agent.neighbour_ids() for agent in agents]
     own = np.array([agent._seen[0].data[agent._seen[1]] for agent in agents]).reshape(-1, 15)
     done = shield.certify_many(u, own[:, 3], own[:, 4:7], [a.rows() for a in agents], ids)
-    return _climb_over_car(agents, u, done)
+    return _settle(agents, u, done)
 
 
-def _climb_over_car(
-    agents: Sequence[OnboardAgent], u: np.ndarray, done: Certificates
-) -> Certificates:
-    """`SafetyFilter.climb_over_car` for the agents whose certificate is a fallback that gave
-    the car's row up (the others' certificates unchanged)."""
-    retry = [j for j in np.flatnonzero(done.fallback).tolist() if done.report(j).gave_car_up]
+def _settle(agents: Sequence[OnboardAgent], u: np.ndarray, done: Certificates) -> Certificates:
+    """`SafetyFilter.settle` for the agents whose certificate is a fallback (the others'
+    certificates unchanged)."""
+    retry = np.flatnonzero(done.fallback).tolist()
     if not retry:
         return done
     action, reports = done.action.copy(), done.reports()
     for j in retry:
         agent = agents[j]
-        action[j], reports[j] = agent.filter.climb_over_car(
-            u[j], agent.context(), (action[j], reports[j])
-        )
+        action[j], reports[j] = agent.filter.settle(u[j], agent.context(), (action[j], reports[j]))
     return Certificates.of_reports(action, reports)
 
 

@@ -23,7 +23,7 @@ import numba
 import numpy as np
 
 from .estimation.bank import _bank_step
-from .safety.barrier_rows import N_FAMILIES, all_rows
+from .safety.barrier_rows import N_FAMILIES, all_rows, make_way
 from .safety.cbf import CONNECT, CBFRows
 from .safety.qp_arrays import family_lows
 from .safety.second_order import second_order_rows
@@ -205,7 +205,7 @@ def observe_pass(
     accel (-1: none)]; ``box_p``: `car_box_arrays`'s params then [recovery steps, pad cut
     boxes]; ``row_p`` = [d_s, r_s, r_c, alpha_v, clearance, z_min, theta*, point mode];
     ``flags`` = [box obstacles, car as obstacle, occlusion rows, moving-target occlusion,
-    occlusion size margin] (`safety.cbf.RowBuilder.pass_params`); ``second_p``:
+    occlusion size margin, make way] (`safety.cbf.RowBuilder.pass_params`); ``second_p``:
     `second_order.second_order_rows`' params (lag_tau > 0: the rows are second order).
 
     Outputs: the rows of UAV j at ``out_start[j]:out_start[j + 1]`` of ``out_A`` (., 3),
@@ -219,7 +219,7 @@ def observe_pass(
     timeout, believe_accel = int(table_p[3]), table_p[4]
     recovery, pad_cut = int(box_p[7]), box_p[8] > 0.5
     box_model, car_rows, occlusion = flags[0], flags[1], flags[2]
-    moving, size_margin = flags[3], flags[4]
+    moving, size_margin, way = flags[3], flags[4], flags[5]
     d_s, r_s, r_c, alpha_v = row_p[0], row_p[1], row_p[2], row_p[3]
     clearance, z_min, theta_star, mode = row_p[4], row_p[5], row_p[6], int(row_p[7])
     zeros3 = np.zeros(3)
@@ -278,8 +278,11 @@ def observe_pass(
             q, vq, half, growth = zeros3, zeros3, zeros3, zeros3
         m = obs_n[w]
         centers, halves = obs_c[w, :m], obs_h[w, :m]
+        rho = radii[0]
+        if way and car and car_rows and k:
+            rho = make_way(row[0:3], motion[0], rho, q, half, 0.0, clearance, r_s)
         A, floats, ints2, sizes = all_rows(
-            row[0:3], motion[0], radii[0], centers, halves, box_model, car and car_rows,
+            row[0:3], motion[0], rho, centers, halves, box_model, car and car_rows,
             q, vq, half, 0.0, growth, car and box[12] > 0.5, d_s, r_s, r_c, alpha_v, clearance,
             z_min, car and occlusion and m > 0, theta_star, mode, moving, size_margin, gammas,
             margins,
@@ -287,7 +290,7 @@ def observe_pass(
         if second_p[0] > 0.0:
             floats[0] = second_order_rows(
                 A, floats[1], floats[0], floats[4], ints2[0], ints2[1], sizes, row[4:7],
-                motion[1], vq, 0.0, growth, car and box[12] > 0.5, True, radii[0], True,
+                motion[1], vq, 0.0, growth, car and box[12] > 0.5, True, rho, True,
                 radii[1], second_p,
             )  # fmt: skip
         n = A.shape[0]

@@ -21,19 +21,26 @@ N_FAMILIES = 5
 
 
 @numba.njit(cache=True)
-def box_sdist(lx, ly, lz, hx, hy, hz, grounded):  # pragma: no cover (compiled)
+def box_sdist(lx, ly, lz, hx, hy, hz, grounded, reach=0.0):  # pragma: no cover (compiled)
     """Signed squared distance from a point (box coordinates) to a box of half sizes h, and its
     gradient: (d2, gx, gy, gz).
 
     Outside: ``dist^2`` with gradient ``2 (p - closest point)``. Inside (penetration depth e to
     the nearest face with outward normal n): ``-e^2`` with gradient ``2 e n``. The function is
     C^1 across the surface (value and gradient both vanish there). ``grounded``: the box stands
-    on the ground, so its bottom face is never the way out (the car, `target_row`).
+    on the ground (the car, `target_row`): inside it is ``-e_xy (t + reach)``, t the depth under
+    the top and e_xy the depth inside the nearest side (outward normal n_xy), with gradient
+    ``((t + reach) n_xy, e_xy)``: 0 on the sides, and both climbing and moving out raise it,
+    moving in lowers it even just under the top (the car may stand anywhere in the box and
+    reach its top; the bottom is never the way out). It jumps up through the top.
     """
     ex, ey, ez = abs(lx) - hx, abs(ly) - hy, abs(lz) - hz
+    if max(ex, ey, ez) < 0.0 and grounded:
+        top, side = hz - lz + reach, -max(ex, ey)
+        if ex >= ey:  # the nearest side, the first axis on ties (numpy's argmax)
+            return -top * side, math.copysign(top, lx), 0.0, side
+        return -top * side, 0.0, math.copysign(top, ly), side
     if max(ex, ey, ez) < 0.0:
-        if grounded:
-            ez = lz - hz
         depth = -max(ex, ey, ez)
         gx = gy = gz = 0.0
         if ex >= ey and ex >= ez:  # the nearest face, first axis on ties (numpy's argmax)
@@ -41,7 +48,7 @@ def box_sdist(lx, ly, lz, hx, hy, hz, grounded):  # pragma: no cover (compiled)
         elif ey >= ez:
             gy = math.copysign(2.0 * depth, ly)
         else:
-            gz = 2.0 * depth if grounded else math.copysign(2.0 * depth, lz)
+            gz = math.copysign(2.0 * depth, lz)
         return -depth * depth, gx, gy, gz
     ox, oy, oz = max(ex, 0.0), max(ey, 0.0), max(ez, 0.0)
     d2 = ox * ox + oy * oy + oz * oz
@@ -49,13 +56,15 @@ def box_sdist(lx, ly, lz, hx, hy, hz, grounded):  # pragma: no cover (compiled)
 
 
 @numba.njit(cache=True)
-def box_sdists(local, half, grounded):  # pragma: no cover (compiled)
+def box_sdists(local, half, grounded, reach=0.0):  # pragma: no cover (compiled)
     """`box_sdist` of points (m, 3) in box coordinates against half sizes (m, 3) or (1, 3)."""
     m = local.shape[0]
     out = np.empty(m)
     for j in range(m):
         hj = half[j if half.shape[0] > 1 else 0]
-        out[j] = box_sdist(local[j, 0], local[j, 1], local[j, 2], hj[0], hj[1], hj[2], grounded)[0]
+        out[j] = box_sdist(
+            local[j, 0], local[j, 1], local[j, 2], hj[0], hj[1], hj[2], grounded, reach
+        )[0]
     return out
 
 
@@ -67,15 +76,18 @@ def target_row(p, q, vq, half, heading, clearance, growth, frustum):  # pragma: 
     """The car, a box at q with yaw ``heading`` standing on the ground and moving at V_q:
     (-grad h, h, drift).
 
-    A tracked car: h = sdist(p, box)^2 - clearance^2 (`box_sdist`, grounded: from inside, the
-    way out is a side or the top). A stale car (``frustum``, its box the growing reachable set
-    of `onboard.car_box`): ``h = d_xy + (z - z_top) - sqrt(2) clearance``, d_xy the horizontal
-    distance to the footprint (0 over it), z_top the top. The frustum's zero set keeps at least
-    ``clearance`` from the box (beside it d_xy >= sqrt(2) clearance + z_top - z; above it
-    d_xy + z - z_top >= sqrt(2) clearance implies a distance >= clearance), and climbing always
-    raises it (grad_z h = 1): a UAV beside a growing box keeps its row by climbing instead of
-    being pushed sideways, away from its team-mates, for as long as the car stays lost. Both are
-    convex in p, so the rows' linearisation is conservative in discrete time.
+    A tracked car: h = sdist(p, box)^2 - clearance^2 (`box_sdist`, grounded, ``reach`` =
+    clearance: from inside, the way out is up and out, never further in). A stale car
+    (``frustum``, its box the growing reachable set of `onboard.car_box`): ``h = d_xy + (z -
+    z_top) - sqrt(2) clearance``, d_xy the horizontal distance to the footprint (0 over it),
+    z_top the top; inside the box plus `box_sdist`'s inside per clearance. The frustum's zero
+    set keeps at least ``clearance`` from the box (beside it d_xy >= sqrt(2) clearance + z_top
+    - z; above it d_xy + z - z_top >= sqrt(2) clearance implies a distance >= clearance), and
+    climbing always raises it (grad_z h >= 1): a UAV beside a growing box keeps its row by
+    climbing instead of being pushed sideways, away from its team-mates, for as long as the car
+    stays lost. Outside the box both are convex in p, so the rows' linearisation is
+    conservative in discrete time there; inside, ``-e_xy (t + reach)`` is a saddle
+    (`second_order.target_curvature` counts it).
 
     h-dot = grad h . (V - V_q) for a translating box (its heading rate neglected), so ``drift =
     -grad h . V_q``; faces moving outwards at ``growth`` (3,) m/s along the box's axes close in
@@ -92,13 +104,61 @@ def target_row(p, q, vq, half, heading, clearance, growth, frustum):  # pragma: 
             gx_l, gy_l = math.copysign(ox / dxy, lx), math.copysign(oy / dxy, ly)
         gz = 1.0
         h = dxy + dz - half[2] - _SQRT2 * clearance
+        inside, gxi, gyi, gzi = box_sdist(lx, ly, dz, half[0], half[1], half[2], True, clearance)
+        if inside < 0.0:  # the box's inside, per clearance
+            h += inside / clearance
+            gx_l, gy_l, gz = gxi / clearance, gyi / clearance, 1.0 + gzi / clearance
     else:
-        d2, gx_l, gy_l, gz = box_sdist(lx, ly, dz, half[0], half[1], half[2], True)
+        d2, gx_l, gy_l, gz = box_sdist(lx, ly, dz, half[0], half[1], half[2], True, clearance)
         h = d2 - clearance * clearance
     gx, gy = c * gx_l - s * gy_l, s * gx_l + c * gy_l
     drift = -(gx * vq[0] + gy * vq[1] + gz * vq[2])
     drift -= abs(gx_l) * growth[0] + abs(gy_l) * growth[1] + abs(gz) * growth[2]
     return -gx, -gy, -gz, h, drift
+
+
+@numba.njit(cache=True)
+def _way_out(x, q, c, s, half, clearance, top):  # pragma: no cover (compiled)
+    """`make_way`'s climb for a UAV at ``x``: 0 unless within ``clearance`` of the box."""
+    dx, dy, dz = x[0] - q[0], x[1] - q[1], x[2] - q[2]
+    lx, ly = c * dx + s * dy, -s * dx + c * dy
+    d2 = box_sdist(lx, ly, dz, half[0], half[1], half[2], True)[0]
+    inside = clearance - (math.sqrt(d2) if d2 >= 0.0 else -math.sqrt(-d2))
+    if inside <= 0.0:
+        return 0.0
+    ox, oy = max(abs(lx) - half[0], 0.0), max(abs(ly) - half[1], 0.0)
+    return max(0.0, min(inside, top - x[2] - math.sqrt(ox * ox + oy * oy)))
+
+
+@numba.njit(cache=True)
+def make_way(p, nb, rho, q, half, heading, clearance, r_s):  # pragma: no cover (compiled)
+    """The radii ``rho`` (k,) of the team-mates at ``nb`` (k, 3) of the UAV at ``p``, each grown
+    by how much more it must climb than this UAV to leave the car's box (centre q, half extents
+    ``half``, yaw ``heading``, standing on the ground), where this UAV is over its way out (not
+    in the paper).
+
+    A UAV that the car's box has caught (it grew over the UAV, or a team-mate pressed it in)
+    leaves it by climbing (the frustum of `target_row`), which a team-mate above it blocks: that
+    team-mate's pair row holds only its half (23). Treating the caught UAV as anywhere within
+    the grown ball, the team-mate's own rows make it back off by the way out the caught one
+    needs. A UAV's climb is ``min(clearance - sdist, climb to the frustum's zero set)`` while it
+    is within ``clearance`` of the box (0 at the clearance, then deeper inside it): of two
+    caught UAVs the higher one makes way for the lower. The growth is tapered to 0 over a
+    ``clearance`` as this UAV comes level with the team-mate or beyond R_s beside it, so that
+    team-mates not in the way keep their rows and none changes at once.
+    """
+    out = rho.copy()
+    c, s = math.cos(heading), math.sin(heading)
+    top = q[2] + half[2] + _SQRT2 * clearance
+    own = _way_out(p, q, c, s, half, clearance, top)
+    for j in range(nb.shape[0]):
+        way = _way_out(nb[j], q, c, s, half, clearance, top) - own
+        if way > 0.0:
+            dx, dy = p[0] - nb[j, 0], p[1] - nb[j, 1]
+            over = min(max((r_s + clearance - math.sqrt(dx * dx + dy * dy)) / clearance, 0.0), 1.0)
+            above = min(max((p[2] - nb[j, 2]) / clearance, 0.0), 1.0)
+            out[j] += way * over * above
+    return out
 
 
 @numba.njit(cache=True)

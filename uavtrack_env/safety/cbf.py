@@ -34,7 +34,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from uavtrack_env.safety.barrier_rows import all_rows, box_sdists
+from uavtrack_env.safety.barrier_rows import all_rows, box_sdists, make_way
 from uavtrack_env.safety.config import CBFConfig
 from uavtrack_env.safety.occlusion import POINT_MODES
 from uavtrack_env.safety.second_order import second_order_rows
@@ -287,14 +287,15 @@ def h_box(
 ) -> np.ndarray:
     """Box barrier ``sdist(p, box)^2 - clearance^2`` for boxes rotated by ``yaw`` about z.
 
-    ``sdist^2`` is the squared distance outside and minus the squared penetration depth inside
-    (never to the bottom face of a ``grounded`` box: the car's barrier, `barrier_rows.target_row`).
+    ``sdist^2`` is the squared distance outside and minus the squared penetration depth inside;
+    inside a ``grounded`` box (the car's barrier, `barrier_rows.target_row`) `box_sdist`'s
+    ``-e_xy (t + clearance)``.
     """
     c, s = math.cos(yaw), math.sin(yaw)
     d = np.asarray(p, float)[None, :] - np.atleast_2d(np.asarray(centers, float))
     local = np.stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1], d[:, 2]], axis=1)
     half = np.ascontiguousarray(np.atleast_2d(np.asarray(half, float)))
-    return box_sdists(local, half, grounded) - clearance**2
+    return box_sdists(local, half, grounded, float(clearance)) - clearance**2
 
 
 def h_occlusion(p: np.ndarray, p_o: np.ndarray, n: np.ndarray, theta_star: float) -> np.ndarray:
@@ -323,6 +324,7 @@ class RowBuilder:
         occlusion: bool = True,
         lag_tau: float = 0.0,
         accel_bound: float = 0.0,
+        make_way: bool = False,
     ) -> None:
         if not (math.isfinite(accel_bound) and accel_bound >= 0.0):
             raise ValueError(f"accel_bound must be a finite number >= 0 (m/s^2), got {accel_bound}")
@@ -340,6 +342,7 @@ class RowBuilder:
         self.target_as_obstacle = target_as_obstacle
         self.occlusion = occlusion
         self.lag_tau = float(lag_tau)
+        self.make_way = bool(make_way)
         # the deceleration a braking row may ask for: 80 % of what the per-axis command box of
         # `ShieldOptions.accel_bound` guarantees in any direction
         self.brake_decel = 0.8 * float(accel_bound) / math.sqrt(3.0)
@@ -358,16 +361,18 @@ class RowBuilder:
         self._theta_star = cbf.theta_star
         self._second_params = self.second_order_params()
 
-    def __call__(self, ctx: SafetyContext) -> CBFRows:
-        """All member rows of the QP (47) for this context."""
+    def __call__(self, ctx: SafetyContext, make_way: bool | None = None) -> CBFRows:
+        """All member rows of the QP (47) for this context (``make_way``: overrides the
+        builder's, `ShieldOptions.make_way`)."""
         cbf = self.cbf
         nb, oc = ctx.neighbours, ctx.obstacle_centers
-        rho = ctx.neighbour_radius
         car = ctx.target_position is not None
+        way = self.make_way if make_way is None else make_way
+        rows_rho = self.pair_radii(ctx) if way else _radii(ctx)
         A, floats, ints, sizes = all_rows(
             ctx.position,
             nb,
-            np.zeros(len(nb)) if rho is None else rho,
+            rows_rho,
             oc,
             ctx.obstacle_half_extents,
             self.obstacle_model == "box",
@@ -395,8 +400,23 @@ class RowBuilder:
         b, h, gamma, drift, margin = floats
         kind, index = ints
         if self.lag_tau > 0.0:
-            b = self._second_order(ctx, A, h, b, margin, kind, index, sizes)
+            b = self._second_order(ctx, A, h, b, margin, kind, index, sizes, rows_rho)
         return CBFRows(A, b, h, gamma, drift, margin, kind, index)
+
+    def pair_radii(self, ctx: SafetyContext) -> np.ndarray:
+        """The team-mates' radii in the pair rows: the context's, grown for team-mates the
+        car's box has caught (`barrier_rows.make_way`)."""
+        rho = _radii(ctx)
+        if ctx.target_position is None or not self.target_as_obstacle or not len(rho):
+            return rho
+        return make_way(
+            ctx.position, ctx.neighbours, rho, ctx.target_position, ctx.target_half_extents,
+            float(ctx.target_heading), self.cbf.obstacle_clearance, self.cbf.r_s,
+        )  # fmt: skip
+
+    def makes_way(self, ctx: SafetyContext) -> bool:
+        """This context's rows grow a team-mate's radius (`pair_radii`)."""
+        return self.make_way and not np.array_equal(self.pair_radii(ctx), _radii(ctx))
 
     def pass_params(self) -> tuple[np.ndarray, ...]:
         """`onboard_pass.observe_pass`'s ``row_p``, ``flags``, ``gammas``, ``margins`` and
@@ -409,7 +429,7 @@ class RowBuilder:
         )  # fmt: skip
         flags = np.array(
             (self.obstacle_model == "box", self.target_as_obstacle, self.occlusion,
-             cbf.occlusion_model == "moving-target", cbf.occlusion_size_margin)
+             cbf.occlusion_model == "moving-target", cbf.occlusion_size_margin, self.make_way)
         )  # fmt: skip
         return row_p, flags, self._gammas, self._margins, self._second_params
 
@@ -433,6 +453,7 @@ class RowBuilder:
         kind: np.ndarray,
         index: np.ndarray,
         sizes: np.ndarray,
+        rho: np.ndarray | None = None,
     ) -> np.ndarray:
         """Right-hand sides of the collision, floor and connectivity rows as second-order CBFs
         for a first-order velocity lag ``v-dot = (u - v) / tau`` (not in the paper).
@@ -448,18 +469,27 @@ class RowBuilder:
         condition; once it is < 0 the pair must brake and s = 1: each UAV brakes for the pair on
         its own, so the condition holds even if the team-mate cannot do its half (a UAV pinned
         by other hard rows gives its pair row up in a fallback) as long as the team-mate does
-        not accelerate towards it. Compiled: `second_order.second_order_rows`.
+        not accelerate towards it. ``rho``: the team-mates' radii of the rows (None: the
+        context's). Compiled: `second_order.second_order_rows`.
         """
         v = ctx.velocity
         if v is None:
             raise ValueError("second-order rows (lag_tau > 0) need SafetyContext.velocity")
-        rho, sigma = ctx.neighbour_radius, ctx.neighbour_velocity_radius
+        sigma = ctx.neighbour_velocity_radius
+        if rho is None:
+            rho = ctx.neighbour_radius
         return second_order_rows(
             A, h, b, margin, kind, index, sizes, v, _neighbour_velocities(ctx),
             ctx.target_velocity, float(ctx.target_heading), ctx.target_growth,
             bool(ctx.target_frustum), rho is not None, _ZEROS3 if rho is None else rho,
             sigma is not None, _ZEROS3 if sigma is None else sigma, self._second_params,
         )  # fmt: skip
+
+
+def _radii(ctx: SafetyContext) -> np.ndarray:
+    """The context's team-mate radii (zeros: known exactly)."""
+    rho = ctx.neighbour_radius
+    return np.zeros(len(ctx.neighbours)) if rho is None else rho
 
 
 def _neighbour_velocities(ctx: SafetyContext) -> np.ndarray:

@@ -211,9 +211,8 @@ def _braking(
     norm = np.sqrt(_rowdot(A, A))
     gap = np.zeros(n)
     decel = np.full(n, a)
-    for f in (0, 4):
-        for r in range(starts[f], ends[f]):
-            decel[r] = 2.0 * a  # a pair: the team-mate brakes as much
+    for r in range(starts[4], ends[4]):
+        decel[r] = 2.0 * a  # a link: the team-mate brakes as much
     for r in range(starts[1], ends[1]):
         gap[r] = math.sqrt(max(h[r] + standoff2, 0.0)) - standoff
     for r in range(starts[2], ends[2]):
@@ -269,18 +268,32 @@ def car_relative_velocity(v, vq, grad, heading, growth):  # pragma: no cover (co
 
 
 @numba.njit(cache=True)
-def target_curvature(heading, grad, dv, h, clearance2):  # pragma: no cover (compiled)
-    """dv' H dv of the car's box row, in the car's frame (its box is axis-aligned there); dv
-    the velocity relative to the car's faces."""
+def target_curvature(heading, grad, dv, h, clearance2, frustum):  # pragma: no cover (compiled)
+    """dv' H dv of the car's row (`barrier_rows.target_row`), in the car's frame (its box is
+    axis-aligned there); dv the velocity relative to the car's faces.
+
+    Outside the box: the box row's 2 sum of dv_a^2 over the axes of its gradient, the frustum's
+    0 (convex: a safe bound). Inside, both hold `barrier_rows.box_sdist`'s ``-e_xy (t +
+    reach)`` (per clearance in the frustum), whose Hessian gives ``-2 dv_z (n . dv)``, n the
+    nearest side's outward normal (its least value ``-2 |dv_z| ||dv_xy||`` where the gradient
+    does not show n)."""
     c, s = math.cos(heading), math.sin(heading)
     g = (c * grad[0] + s * grad[1], -s * grad[0] + c * grad[1], grad[2])
     d = (c * dv[0] + s * dv[1], -s * dv[0] + c * dv[1], dv[2])
+    inside = g[2] > 1.0 if frustum else h + clearance2 < 0.0
+    if inside:
+        scale = 2.0 / math.sqrt(clearance2) if frustum else 2.0
+        if g[0] != 0.0 or g[1] != 0.0:
+            return -scale * d[2] * (_sign(g[0]) * d[0] + _sign(g[1]) * d[1])
+        return -scale * abs(d[2]) * math.sqrt(d[0] * d[0] + d[1] * d[1])
+    if frustum:
+        return 0.0
     big = max(abs(g[0]), abs(g[1]), abs(g[2]), 1e-300)
     out = 0.0
     for a in range(3):
         if abs(g[a]) > 1e-12 * big:
             out += d[a] * d[a]
-    return (2.0 if h + clearance2 >= 0.0 else -2.0) * out
+    return 2.0 * out
 
 
 @numba.njit(cache=True)
@@ -289,8 +302,8 @@ def second_order_rows(
     has_sigma, sigma, params,
 ):  # fmt: skip  # pragma: no cover (compiled)
     """`second_order_b` from the context's values: the rows' gradients times ``v``, the car
-    row's relative velocity (`car_relative_velocity`) and curvature (`target_curvature`; 0 for
-    the convex ``frustum``), for a car box moving at ``vq`` with yaw ``heading`` and faces
+    row's relative velocity (`car_relative_velocity`) and curvature (`target_curvature`), for
+    a car box moving at ``vq`` with yaw ``heading`` and faces
     growing at ``growth``; ``params`` = [lag_tau, gamma_s, gamma_c, gamma_obstacle, gamma_z,
     clearance, clearance^2, standoff, standoff^2, box obstacles, R_s, R_c, alpha_v,
     brake_decel] (`cbf.RowBuilder.second_order_params`)."""
@@ -305,8 +318,7 @@ def second_order_rows(
         t = sizes[0] + sizes[1]
         grad_t = -A[t]
         dv_t = car_relative_velocity(v, vq, grad_t, heading, growth)
-        if not frustum:  # the frustum's Hessian is >= 0 (h convex): 0 is the safe bound
-            curv_t = target_curvature(heading, grad_t, dv_t, h[t], params[6])
+        curv_t = target_curvature(heading, grad_t, dv_t, h[t], params[6], frustum)
     return second_order_b(
         A, h, b, margin, kind, index, sizes, v, nb_v, grad_v, dv_t, curv_t, frustum, has_rho,
         rho, has_sigma, sigma, params[0], params[1], params[2], params[3], params[4], params[5],

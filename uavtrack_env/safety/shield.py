@@ -64,6 +64,7 @@ import numpy as np
 import qpsolvers
 
 from uavtrack_env.config import DT, ControlLimits
+from uavtrack_env.geometry import cam_to_world_vec
 from uavtrack_env.safety import daqp_native
 from uavtrack_env.safety.cbf import (
     CONNECT,
@@ -138,11 +139,16 @@ class ShieldOptions:
     camera axis, so the plant never clips its acceleration and the second-order rows hold as
     written; the rows that keep the UAV from obstacles, the floor and the other UAVs also keep
     its braking distance (`RowBuilder`). 0: no bound."""
+    make_way: bool = True
+    """Not in the paper: a team-mate within the clearance of the car's box counts as anywhere
+    within its reachable ball grown by the climb it needs to leave the box
+    (`barrier_rows.make_way`), so that the other UAVs back off and let it out over the car
+    instead of pinning it there with their half of the pair row."""
 
     def __post_init__(self) -> None:
         f = _Fields(self)
         f.choice("obstacle_model", ("box", "point"))
-        for name in ("target_as_obstacle", "occlusion", "prune"):
+        for name in ("target_as_obstacle", "occlusion", "prune", "make_way"):
             f.flag(name)
         f.number("connectivity_margin", lo=0, none_means="2.1 dt alpha_v^2")
         f.number("soft_penalty", lo=0, lo_open=True)
@@ -292,6 +298,7 @@ class SafetyFilter:
             occlusion=self.options.occlusion,
             lag_tau=self.options.lag_tau,
             accel_bound=self.options.accel_bound if self.options.lag_tau > 0.0 else 0.0,
+            make_way=self.options.make_way,
         )
         self._lb3 = np.full(3, -self.v_max)
         self._ub3 = np.full(3, self.v_max)
@@ -343,6 +350,25 @@ class SafetyFilter:
         u = _checked_nominal(u_nominal, ctx)
         rows = self.row_builder(ctx) if rows is None else rows
         done = self._certify(u, ctx.yaw, ctx.velocity, rows, ctx.neighbour_ids, t0)
+        return self.settle(u, ctx, done)
+
+    def settle(
+        self, u: np.ndarray, ctx: SafetyContext, done: tuple[np.ndarray, ShieldReport]
+    ) -> tuple[np.ndarray, ShieldReport]:
+        """``done`` = certify's (action, report) of ``u`` on ``rows(ctx)``; if it is a fallback,
+        then `climb_over_car`. Where the rows grew a team-mate's radius (`ShieldOptions.make_way`)
+        that growth is a courtesy: a fallback keeps it only if its action breaks no hard row of
+        the plain rows that the plain rows' own certificate keeps."""
+        if done[1].status != "fallback":
+            return done
+        if self.row_builder.makes_way(ctx):
+            rows = self.row_builder(ctx, make_way=False)
+            plain = self._certify(
+                u, ctx.yaw, ctx.velocity, rows, ctx.neighbour_ids, time.perf_counter()
+            )
+            tol = self.options.verify_tol
+            if not _broken(rows, done[0], ctx.yaw, tol) <= _broken(rows, plain[0], ctx.yaw, tol):
+                done = plain
         return self.climb_over_car(u, ctx, done)
 
     def climb_over_car(
@@ -363,7 +389,7 @@ class SafetyFilter:
         if not done[1].gave_car_up or ctx.target_frustum:
             return done
         ctx = replace(ctx, target_frustum=True)
-        rows = self.row_builder(ctx)
+        rows = self.row_builder(ctx, make_way=False)
         return self._certify(
             u, ctx.yaw, ctx.velocity, rows, ctx.neighbour_ids, time.perf_counter(),
             _stale_team_mates_with_car(rows, ctx.neighbour_radius),
@@ -624,6 +650,14 @@ class SafetyFilter:
             rows=rows,
             neighbour_ids=ids,
         )
+
+
+def _broken(rows: CBFRows, u: np.ndarray, yaw: float, tol: float) -> set[int]:
+    """The hard rows (uav, obstacle, car, floor) that the camera-frame command ``u`` breaks by
+    more than ``tol`` (m/s on unit rows)."""
+    V = cam_to_world_vec(np.asarray(u[:3], float), yaw)
+    excess = (rows.A @ V - rows.b) / np.maximum(np.linalg.norm(rows.A, axis=1), 1e-12)
+    return set(np.flatnonzero((rows.kind < CONNECT) & (excess > tol)).tolist())
 
 
 def _stale_team_mates_with_car(rows: CBFRows, radius: np.ndarray | None) -> np.ndarray | None:
