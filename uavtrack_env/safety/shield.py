@@ -358,7 +358,7 @@ class SafetyFilter:
         """``done`` = certify's (action, report) of ``u`` on ``rows(ctx)``; if it is a fallback,
         then `climb_over_car`. Where the rows grew a team-mate's radius (`ShieldOptions.make_way`)
         that growth is a courtesy: a fallback keeps it only if its action breaks no hard row of
-        the plain rows that the plain rows' own certificate keeps."""
+        the plain rows more than the plain rows' own certificate does."""
         if done[1].status != "fallback":
             return done
         if self.row_builder.makes_way(ctx):
@@ -366,8 +366,8 @@ class SafetyFilter:
             plain = self._certify(
                 u, ctx.yaw, ctx.velocity, rows, ctx.neighbour_ids, time.perf_counter()
             )
-            tol = self.options.verify_tol
-            if not _broken(rows, done[0], ctx.yaw, tol) <= _broken(rows, plain[0], ctx.yaw, tol):
+            own, alone = _excess(rows, done[0], ctx.yaw), _excess(rows, plain[0], ctx.yaw)
+            if (own > np.maximum(alone, 0.0) + self.options.verify_tol).any():
                 done = plain
         return self.climb_over_car(u, ctx, done)
 
@@ -652,12 +652,12 @@ class SafetyFilter:
         )
 
 
-def _broken(rows: CBFRows, u: np.ndarray, yaw: float, tol: float) -> set[int]:
-    """The hard rows (uav, obstacle, car, floor) that the camera-frame command ``u`` breaks by
-    more than ``tol`` (m/s on unit rows)."""
+def _excess(rows: CBFRows, u: np.ndarray, yaw: float) -> np.ndarray:
+    """How far (m/s on unit rows) the camera-frame command ``u`` breaks each hard row (uav,
+    obstacle, car, floor) of ``rows``; negative where it keeps it, -inf for soft rows."""
     V = cam_to_world_vec(np.asarray(u[:3], float), yaw)
     excess = (rows.A @ V - rows.b) / np.maximum(np.linalg.norm(rows.A, axis=1), 1e-12)
-    return set(np.flatnonzero((rows.kind < CONNECT) & (excess > tol)).tolist())
+    return np.where(rows.kind < CONNECT, excess, -np.inf)
 
 
 def _stale_team_mates_with_car(rows: CBFRows, radius: np.ndarray | None) -> np.ndarray | None:
