@@ -278,3 +278,48 @@ def test_second_order_rows_keep_the_lagged_plant_safe(scenario):
     assert _closed_loop(0.0, 5.0, scenario) < -0.05
     for speed in (1.0, 5.0):
         assert _closed_loop(TAU, speed, scenario) >= -1e-9
+
+
+@pytest.mark.parametrize("speed", [3.0, 5.0])
+def test_a_uav_stops_short_of_a_team_mate_that_does_not_brake(speed):
+    """Under the env's lag model a shielded UAV flies at ``speed`` at a hovering team-mate that
+    does not brake for the pair (a fallback gave its pair row up): it stops outside R_s."""
+    dyn, dt = DynamicsConfig(model="lag"), 1.0 / 80.0
+    shield = SafetyFilter(lag_tau=TAU, accel_bound=dyn.a_max)
+    pos = np.array([[0.0, 0.0, 3.0], [8.0, 0.3, 3.0]])
+    yaw, vel, w = np.zeros(2), np.zeros((2, 3)), np.zeros(2)
+    worst = np.inf
+    for _ in range(600):
+        ctx = SafetyContext(
+            position=pos[0], yaw=0.0, neighbours=[pos[1]], velocity=vel[0],
+            neighbour_velocities=[vel[1]],
+        )  # fmt: skip
+        d = (pos[1] - pos[0]) / np.linalg.norm(pos[1] - pos[0])
+        u, _ = shield.certify(np.r_[world_to_cam_vec(speed * d, 0.0), 0.0], ctx)
+        pos, yaw, vel, w = integrate(pos, yaw, vel, w, np.array([u, np.zeros(4)]), dyn, dt)
+        worst = min(worst, float(np.linalg.norm(pos[0] - pos[1])))
+    assert CBF.r_s <= worst < CBF.r_s + 1.0  # it came close, and stopped outside R_s
+
+
+def test_a_pair_braking_row_counts_on_one_uavs_deceleration():
+    """A UAV closing at 3 m/s on a team-mate at rest 3 m outside R_s: its pair row is the
+    braking-distance row with its own deceleration a (`RowBuilder.brake_decel`), s_b = s - w^2
+    / (2 a), not with the pair's 2a (the team-mate may have given the row up), which here
+    would be looser than the second-order row."""
+    w, gap = 3.0, 3.0
+    ctx = SafetyContext(
+        position=[0.0, 0.0, 3.0], yaw=0.0, neighbours=[[CBF.r_s + gap, 0.0, 3.0]],
+        velocity=[w, 0.0, 0.0], neighbour_velocities=[[0.0, 0.0, 0.0]],
+    )  # fmt: skip
+    shield = SafetyFilter(lag_tau=TAU, accel_bound=6.0)
+    rows = shield.rows(ctx)
+    r = np.flatnonzero(rows.kind == UAV)[0]
+    a, norm, gamma = shield.row_builder.brake_decel, np.linalg.norm(rows.A[r]), CBF.gamma_s
+    assert norm == pytest.approx(2 * (CBF.r_s + gap)) and shield.cbf.gamma_s == gamma
+    s = CBF.r_s + gap - shield.cbf.r_s  # the shield's R_s carries its margin
+    one, both = (
+        norm * (w + TAU * a * (gamma * (s - w * w / (2 * d)) / w - 1.0)) for d in (a, 2 * a)
+    )
+    second = SafetyFilter(lag_tau=TAU).rows(ctx)  # no braking rows
+    assert one < second.b[r] + second.margin[r] < both
+    assert rows.b[r] + rows.margin[r] == pytest.approx(one, rel=1e-12)

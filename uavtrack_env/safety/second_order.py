@@ -200,11 +200,13 @@ def _braking(
     s is the distance left before the row's limit (to the clearance of an obstacle or of the
     car's box, h / ||grad h|| for its frustum, the floor, R_s from a team-mate, or R_c), w > 0
     the speed closing it along m = A / ||A|| (relative to the car's faces for the car), a the
-    deceleration one UAV guarantees (``brake_decel``; a team-mate brakes as much, so a pair has
-    2a). With v-dot = (u - v) / tau (exact under `ShieldOptions.accel_bound`) and the distance
-    convex along the motion, ``m . u <= m . v + tau a (gamma s_b / w - 1)`` keeps ``s_b = s -
-    w^2 / (2 a_pair)`` from decreasing faster than ``-gamma s_b``: at s_b = 0 it
-    asks for a deceleration of exactly a. Rows not closing (w <= 0) get +inf.
+    deceleration one UAV guarantees (``brake_decel``; a pair row counts on it alone, since a
+    team-mate whose fallback gave the row up does not brake for it, a link on 2a: the
+    team-mate brakes as much). With v-dot = (u - v) / tau (exact under
+    `ShieldOptions.accel_bound`) and the distance convex along the motion, ``m . u <= m . v +
+    tau a (gamma s_b / w - 1)`` keeps ``s_b = s - w^2 / (2 a_row)`` from decreasing faster than
+    ``-gamma s_b``: at s_b = 0 it asks for a deceleration of exactly a. Rows not closing (w <=
+    0) get +inf.
     """
     n = h.shape[0]
     out = np.full(n, np.inf)
@@ -303,8 +305,8 @@ def second_order_rows(
 ):  # fmt: skip  # pragma: no cover (compiled)
     """`second_order_b` from the context's values: the rows' gradients times ``v``, the car
     row's relative velocity (`car_relative_velocity`) and curvature (`target_curvature`), for
-    a car box moving at ``vq`` with yaw ``heading`` and faces
-    growing at ``growth``; ``params`` = [lag_tau, gamma_s, gamma_c, gamma_obstacle, gamma_z,
+    a car box moving at ``vq`` with yaw ``heading`` and faces growing at ``growth``;
+    ``params`` = [lag_tau, gamma_s, gamma_c, gamma_obstacle, gamma_z,
     clearance, clearance^2, standoff, standoff^2, box obstacles, R_s, R_c, alpha_v,
     brake_decel] (`cbf.RowBuilder.second_order_params`)."""
     n = h.shape[0]

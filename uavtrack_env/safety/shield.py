@@ -143,7 +143,8 @@ class ShieldOptions:
     """Not in the paper: a team-mate within the clearance of the car's box counts as anywhere
     within its reachable ball grown by the climb it needs to leave the box
     (`barrier_rows.make_way`), so that the other UAVs back off and let it out over the car
-    instead of pinning it there with their half of the pair row."""
+    instead of pinning it there with their half of the pair row. A courtesy: a fallback keeps
+    it only where it costs no hard row (`SafetyFilter.settle`)."""
 
     def __post_init__(self) -> None:
         f = _Fields(self)
