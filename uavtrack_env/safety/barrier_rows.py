@@ -104,10 +104,13 @@ def target_row(p, q, vq, half, heading, clearance, growth, frustum):  # pragma: 
             gx_l, gy_l = math.copysign(ox / dxy, lx), math.copysign(oy / dxy, ly)
         gz = 1.0
         h = dxy + dz - half[2] - _SQRT2 * clearance
-        inside, gxi, gyi, gzi = box_sdist(lx, ly, dz, half[0], half[1], half[2], True, clearance)
-        if inside < 0.0:  # the box's inside, per clearance
-            h += inside / clearance
-            gx_l, gy_l, gz = gxi / clearance, gyi / clearance, 1.0 + gzi / clearance
+        if dxy == 0.0 and dz < half[2]:  # over the footprint, under the top: maybe inside
+            inside, gxi, gyi, gzi = box_sdist(
+                lx, ly, dz, half[0], half[1], half[2], True, clearance
+            )
+            if inside < 0.0:  # the box's inside, per clearance
+                h += inside / clearance
+                gx_l, gy_l, gz = gxi / clearance, gyi / clearance, 1.0 + gzi / clearance
     else:
         d2, gx_l, gy_l, gz = box_sdist(lx, ly, dz, half[0], half[1], half[2], True, clearance)
         h = d2 - clearance * clearance

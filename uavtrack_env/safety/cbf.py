@@ -453,7 +453,7 @@ class RowBuilder:
         kind: np.ndarray,
         index: np.ndarray,
         sizes: np.ndarray,
-        rho: np.ndarray | None = None,
+        rho: np.ndarray,
     ) -> np.ndarray:
         """Right-hand sides of the collision, floor and connectivity rows as second-order CBFs
         for a first-order velocity lag ``v-dot = (u - v) / tau`` (not in the paper).
@@ -469,19 +469,17 @@ class RowBuilder:
         condition; once it is < 0 the pair must brake and s = 1: each UAV brakes for the pair on
         its own, so the condition holds even if the team-mate cannot do its half (a UAV pinned
         by other hard rows gives its pair row up in a fallback) as long as the team-mate does
-        not accelerate towards it. ``rho``: the team-mates' radii of the rows (None: the
-        context's). Compiled: `second_order.second_order_rows`.
+        not accelerate towards it. ``rho``: the team-mates' radii of the rows (`pair_radii`).
+        Compiled: `second_order.second_order_rows`.
         """
         v = ctx.velocity
         if v is None:
             raise ValueError("second-order rows (lag_tau > 0) need SafetyContext.velocity")
         sigma = ctx.neighbour_velocity_radius
-        if rho is None:
-            rho = ctx.neighbour_radius
         return second_order_rows(
             A, h, b, margin, kind, index, sizes, v, _neighbour_velocities(ctx),
             ctx.target_velocity, float(ctx.target_heading), ctx.target_growth,
-            bool(ctx.target_frustum), rho is not None, _ZEROS3 if rho is None else rho,
+            bool(ctx.target_frustum), True, rho,
             sigma is not None, _ZEROS3 if sigma is None else sigma, self._second_params,
         )  # fmt: skip
 
