@@ -552,8 +552,9 @@ def _wrapper(vec, kind: type):
 def model_and_env(args: Args, lambda_init: float = 0.0):
     """The PPO model and its VecEnv: the last checkpoint of ``--resume`` (with its VecNormalize
     statistics and multiplier), else a new model with the command line's hyperparameters."""
-    from stable_baselines3 import PPO
     from stable_baselines3.common.vec_env import VecNormalize
+
+    from train.sb3_ppo import OPTIMIZER_KWARGS, SharedPPO
 
     out = args.out
     vec = make_vec_env(args, lambda_init)
@@ -562,11 +563,11 @@ def model_and_env(args: Args, lambda_init: float = 0.0):
         if isinstance(vec, VecNormalize) and norm is not None:
             vec = VecNormalize.load(str(norm), vec.venv)
             vec.seed(args.seed)
-        model = PPO.load(path, env=vec, device="cpu", tensorboard_log=str(out / "tb"))
+        model = SharedPPO.load(path, env=vec, device="cpu", tensorboard_log=str(out / "tb"))
         print(f"resuming {path} at {model.num_timesteps} agent-steps")
         return model, vec
     hidden = [int(h) for h in args.net_arch.split(",") if h]
-    model = PPO(
+    model = SharedPPO(
         "MlpPolicy",
         vec,
         n_steps=args.n_steps,
@@ -581,6 +582,7 @@ def model_and_env(args: Args, lambda_init: float = 0.0):
         policy_kwargs={
             "net_arch": {"pi": hidden, "vf": hidden},
             "log_std_init": args.log_std_init,
+            "optimizer_kwargs": OPTIMIZER_KWARGS,
         },
         tensorboard_log=str(out / "tb"),
         seed=args.seed,

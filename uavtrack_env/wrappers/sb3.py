@@ -298,34 +298,43 @@ class VectorSharedPolicyVecEnv(VecEnv):
         rows[ended] = obs[ended]  # the worlds that reset: their first observations
         dones = (done & was_live) | (ended[:, None] & ~was_live)
         infos: list[dict[str, Any]] = []
-        costs, shield = info["costs"], info.get("shield")
-        shielded = shield is not None
+        # Python lists: indexing them per row costs a fraction of indexing the arrays.
+        costs = [(name, values.tolist()) for name, values in info["costs"].items()]
+        cost, tracking, effort, clipped = (
+            info[key].tolist()
+            for key in ("cost", "reward_tracking", "reward_effort", "action_clipped")
+        )
+        shield = info.get("shield")
+        if shield is not None:
+            active, correction = shield["active"].tolist(), shield["correction_norm"].tolist()
+        live, ends, dead = was_live.tolist(), ended.tolist(), done.tolist()
+        time_limit = (trunc & ~term).tolist()
         for k in range(self.n_worlds):
             for j in range(self.n_agents):
-                if not was_live[k, j]:
+                if not live[k][j]:
                     row = {"absorbing": True}
-                    if ended[k]:  # end of an absorbing chain: terminal, value 0
+                    if ends[k]:  # end of an absorbing chain: terminal, value 0
                         row["terminal_observation"] = self.absorbing_obs.copy()
                         row["TimeLimit.truncated"] = False
                     infos.append(row)
                     continue
-                c = {name: float(costs[name][k, j]) for name in costs}
+                c = {name: float(values[k][j]) for name, values in costs}
                 row = {
-                    "cost": float(info["cost"][k, j]),
+                    "cost": float(cost[k][j]),
                     "costs": c,
                     "violations": {name: value > 0.0 for name, value in c.items()},
-                    "reward_tracking": float(info["reward_tracking"][k, j]),
-                    "reward_effort": float(info["reward_effort"][k, j]),
-                    "action_clipped": bool(info["action_clipped"][k, j]),
+                    "reward_tracking": float(tracking[k][j]),
+                    "reward_effort": float(effort[k][j]),
+                    "action_clipped": bool(clipped[k][j]),
                 }
-                if shielded:
+                if shield is not None:
                     row["shield"] = {
-                        "active": bool(shield["active"][k, j]),
-                        "correction_norm": float(shield["correction_norm"][k, j]),
+                        "active": bool(active[k][j]),
+                        "correction_norm": float(correction[k][j]),
                     }
-                if done[k, j]:
+                if dead[k][j]:
                     row["terminal_observation"] = last[k, j].copy()
-                    row["TimeLimit.truncated"] = bool(trunc[k, j] and not term[k, j])
+                    row["TimeLimit.truncated"] = bool(time_limit[k][j])
                 infos.append(row)
         self._live = (was_live & ~done) | ended[:, None]
         rewards = np.where(was_live, rew, 0.0).astype(np.float32).reshape(-1)
