@@ -5,9 +5,10 @@
 Every adversary *family* (a factory ``make(env, rng) -> policy(obs, infos) -> {agent: action}``,
 normalised camera-frame actions [v_cx, v_cy, v_cz, omega_cy] in [-1, 1]^4, X right, Y down, Z
 forward) runs shielded (``CBFShield(env, preset)``) and unshielded on the same seeded random
-worlds: the grid n in {3, 6, 10} x dynamics in {integrator, lag} x comms drop in {0, 0.5}, with
-detector dropouts (0.2) and ``terminate_on_collision="agent"``. An adversary is a test tool: it
-may read ``info["truth"]`` and ``env.unwrapped.layout``; the shield never does.
+worlds: the grid n in {3, 6, 10} x dynamics in {integrator, lag} x comms drop in {0, 0.5}
+(``--team-sizes``, ``--drops``: other n and drops), with detector dropouts (0.2) and
+``terminate_on_collision="agent"``. An adversary is a test tool: it may read ``info["truth"]``
+and ``env.unwrapped.layout``; the shield never does.
 
 The ``cem`` family is a search: the cross-entropy method over open-loop, piecewise-constant action
 sequences (`SearchOptions.knots` knots per agent) that minimises the least barrier margin of the
@@ -135,6 +136,10 @@ class HarnessOptions:
     corridor: float | None = None
     """Half-width (m) of the car's path kept free of obstacles (None:
     `RandomWorldConfig.corridor`)."""
+    team_sizes: tuple[int, ...] = GRID_N
+    """The grid's team sizes n."""
+    drops: tuple[float, ...] = GRID_DROP
+    """The grid's message drop probabilities."""
 
     def random_world(self) -> dict[str, Any]:
         """The ``random_world`` overrides of ``parallel_env`` these options make."""
@@ -162,9 +167,15 @@ class WorldSpec:
         return f"n{self.n}-{self.dynamics}-drop{self.drop:g}"
 
 
-def make_worlds(count: int, seed: int = 0) -> list[WorldSpec]:
-    """``count`` worlds: world k in grid cell k mod 12 (n, dynamics, drop), seed ``seed + k``."""
-    cells = list(itertools.product(GRID_N, GRID_DYNAMICS, GRID_DROP))
+def make_worlds(
+    count: int,
+    seed: int = 0,
+    team_sizes: Sequence[int] = GRID_N,
+    drops: Sequence[float] = GRID_DROP,
+) -> list[WorldSpec]:
+    """``count`` worlds: world k in grid cell k mod the cells (n, dynamics, drop; 12 by default),
+    seed ``seed + k``."""
+    cells = list(itertools.product(team_sizes, GRID_DYNAMICS, drops))
     return [WorldSpec(k, *cells[k % len(cells)], seed + k) for k in range(count)]
 
 
@@ -626,7 +637,7 @@ def run_task(task: tuple[WorldSpec, str, HarnessOptions, ExpertConfig]) -> list[
 def run_harness(opts: HarnessOptions, config: ExpertConfig) -> list[dict[str, Any]]:
     """Every (world, family) task, in a Pool of ``opts.workers`` processes (1: in-process)."""
     families = selected_families(opts)
-    worlds = make_worlds(opts.worlds, opts.seed)
+    worlds = make_worlds(opts.worlds, opts.seed, opts.team_sizes, opts.drops)
     # The search first: the longest tasks start early and the workers finish together.
     order = sorted(families, key=lambda f: f != SEARCH_FAMILY)
     tasks = [
@@ -809,7 +820,10 @@ def write_outputs(
     harness = {k: v for k, v in dataclasses.asdict(opts).items() if k != "out"}
     harness["out"] = str(opts.out)
     harness["families"] = selected_families(opts)
-    worlds = [dataclasses.asdict(w) for w in make_worlds(opts.worlds, opts.seed)]
+    worlds = [
+        dataclasses.asdict(w)
+        for w in make_worlds(opts.worlds, opts.seed, opts.team_sizes, opts.drops)
+    ]
     record = config_record(opts.preset, None, config, command, harness=harness, worlds=worlds)
     summary = summarize(records)
     meta = {**harness, "command": command, "commit": record["commit"], "wall_s": wall_s}
@@ -864,6 +878,22 @@ def parse_args(argv: list[str] | None = None) -> HarnessOptions:
         default=None,
         help="half-width (m) of the car's path kept free of obstacles (default 2.5)",
     )
+    p.add_argument(
+        "--team-sizes",
+        type=int,
+        nargs="+",
+        default=list(d.team_sizes),
+        metavar="N",
+        help="the grid's team sizes (default 3 6 10)",
+    )
+    p.add_argument(
+        "--drops",
+        type=float,
+        nargs="+",
+        default=list(d.drops),
+        metavar="P",
+        help="the grid's message drop probabilities (default 0 0.5)",
+    )
     p.add_argument("--out", type=Path, default=d.out, help="output directory")
     p.add_argument("--seed", type=int, default=d.seed, help="world k has seed SEED + k")
     p.add_argument("--workers", type=int, default=d.workers, help="processes")
@@ -882,6 +912,8 @@ def parse_args(argv: list[str] | None = None) -> HarnessOptions:
         p.error("need 0 < --elite <= --population, --knots >= 1, --iterations >= 1")
     if a.worlds < 1 or a.steps < 1 or a.workers < 1:
         p.error("--worlds, --steps and --workers must be >= 1")
+    if min(a.team_sizes) < 1 or not all(0.0 <= q < 1.0 for q in a.drops):
+        p.error("--team-sizes must be >= 1 and --drops in [0, 1)")
     opts = HarnessOptions(
         worlds=a.worlds,
         steps=a.steps,
@@ -897,6 +929,8 @@ def parse_args(argv: list[str] | None = None) -> HarnessOptions:
         search_options=search,
         n_obstacles=None if a.obstacles is None else tuple(a.obstacles),
         corridor=a.corridor,
+        team_sizes=tuple(a.team_sizes),
+        drops=tuple(a.drops),
     )
     try:
         selected_families(opts)

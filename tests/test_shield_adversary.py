@@ -128,9 +128,23 @@ def test_cli_options():
     assert opts.random_world() == {}
     dense = sa.parse_args(["--obstacles", "24", "48", "--corridor", "1.5"])
     assert dense.random_world() == {"n_obstacles": (24, 48), "corridor": 1.5}
-    for bad in (["--obstacles", "9", "3"], ["--corridor", "-1"], ["--obstacles", "4"]):
+    for bad in (
+        ["--obstacles", "9", "3"], ["--corridor", "-1"], ["--obstacles", "4"],
+        ["--team-sizes", "0"], ["--drops", "1.0"], ["--drops", "-0.1"],
+    ):  # fmt: skip
         with pytest.raises(SystemExit):
             sa.parse_args(bad)
+
+
+def test_the_grid_takes_other_team_sizes_and_drops():
+    opts = sa.parse_args(["--team-sizes", "20", "--drops", "0.9", "0.99", "--worlds", "5"])
+    worlds = sa.make_worlds(opts.worlds, opts.seed, opts.team_sizes, opts.drops)
+    assert [w.cell for w in worlds] == [
+        "n20-integrator-drop0.9", "n20-integrator-drop0.99", "n20-lag-drop0.9",
+        "n20-lag-drop0.99", "n20-integrator-drop0.9",
+    ]  # fmt: skip
+    assert [w.seed for w in worlds] == list(range(5))
+    assert sa.make_worlds(12) == sa.make_worlds(12, 0, (3, 6, 10), (0.0, 0.5))
 
 
 def test_dense_worlds_reach_the_env_and_the_report():
@@ -323,3 +337,19 @@ def test_a_team_mate_pressing_from_a_lost_message_does_not_push_a_uav_into_the_c
     run = sa.run_one(world, "block-and-press", True, opts, expert_config("tuned"))
     assert run["counts"]["collision"] == 0 and run["counts"]["disconnection"] == 0, run
     assert run["least"]["car"] > 0.0 and run["least"]["uav"] > 0.0
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("family", ["random-held", "mixed"])
+@pytest.mark.parametrize(
+    "world",
+    [sa.WorldSpec(6, 20, "integrator", 0.9, 4106), sa.WorldSpec(1, 10, "integrator", 0.99, 4101)],
+    ids=lambda w: w.cell,
+)
+def test_a_team_that_loses_most_messages_keeps_apart(world, family):
+    """20 and 10 UAVs in formation hearing 10 % and 1 % of their messages: a team-mate's ball
+    soon swallows a UAV, whose rows then stop it (the speed cap) instead of being given up in a
+    fallback, which let two UAVs of the n = 20 world inside R_s."""
+    opts = sa.HarnessOptions(steps=300, seed=4100, progress=False)
+    run = sa.run_one(world, family, True, opts, expert_config("tuned"))
+    assert run["counts"]["collision"] == 0 and run["least"]["uav"] > 0.0, run

@@ -23,7 +23,7 @@ import numba
 import numpy as np
 
 from .estimation.bank import _bank_step
-from .safety.barrier_rows import N_FAMILIES, all_rows, make_way
+from .safety.barrier_rows import CAP_ROWS, N_FAMILIES, all_rows, make_way
 from .safety.cbf import CONNECT, CBFRows
 from .safety.qp_arrays import family_lows
 from .safety.second_order import second_order_rows
@@ -180,8 +180,8 @@ def input_rows_of(
 
 def max_rows(n_mates: int, n_obstacles: int) -> int:
     """The most CBF rows one UAV can have: uav and connect per team-mate, obstacle and
-    occlusion per box, the car and the floor."""
-    return 2 * n_mates + 2 * n_obstacles + 2
+    occlusion per box, the car, the floor and the speed cap."""
+    return 2 * n_mates + 2 * n_obstacles + 2 + CAP_ROWS
 
 
 @numba.njit(cache=True)
@@ -285,7 +285,7 @@ def observe_pass(
             row[0:3], motion[0], rho, centers, halves, box_model, car and car_rows,
             q, vq, half, 0.0, growth, car and box[12] > 0.5, d_s, r_s, r_c, alpha_v, clearance,
             z_min, car and occlusion and m > 0, theta_star, mode, moving, size_margin, gammas,
-            margins,
+            margins, radii[0] if second_p[0] <= 0.0 else radii[0][:0],
         )  # fmt: skip
         if second_p[0] > 0.0:
             floats[0] = second_order_rows(

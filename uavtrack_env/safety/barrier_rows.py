@@ -18,6 +18,8 @@ from uavtrack_env.safety.occlusion import occlusion_family
 
 N_FAMILIES = 5
 """uav, obstacle, target, floor, connect: the order of `first_order_rows`' families."""
+CAP_ROWS = 6
+"""Rows of the speed cap (`first_order_rows`): the box |V_x|, |V_y|, |V_z| <= S / sqrt(3)."""
 
 
 @numba.njit(cache=True)
@@ -185,6 +187,8 @@ def first_order_rows(
     alpha_v,
     clearance,
     z_min,
+    gamma_uav,
+    cap_rho,
 ):  # pragma: no cover (compiled)
     """Rows of the families uav, obstacle, target, floor, connect (in that order): (A, h, drift,
     index, sizes).
@@ -204,9 +208,20 @@ def first_order_rows(
     possible distance, ``(||d|| -+ rho)^2``, and the drift ``-2 rho alpha_v`` for the unknown
     part of ``-+2 (p - p_j) . V`` (``||V|| <= alpha_v``); it keeps its rows while it may be in
     the set. Each UAV's half still bounds its true share, so the halves sum to (22)/(31).
+
+    ``cap_rho`` (k,) (first-order rows; empty: none): the radii of the lost messages alone,
+    without `make_way`'s growth, and a speed cap ``S <= alpha_v`` for them (``gamma_uav``: the
+    uav rows' rate). The drift bounds ``2 e . V`` (``||e|| <= rho``) by ``2 rho S``, S keeping
+    ``V = 0`` inside the rows of every team-mate with a lost message, so its ball never makes
+    them infeasible however long its messages are lost. Their h is at least 0: the true pair is
+    outside R_s while the promise holds, whatever part of the ball reaches inside. S is the
+    least ``gamma_uav h / (2 rho)`` of those rows, at most alpha_v; below alpha_v the cap is
+    `CAP_ROWS` more uav rows (the box that fits in the ball ``||V|| <= S``; index: the team-mate
+    whose row set it), and the connect rows' drift counts on S too. Every message heard: no
+    change. A ball that swallows the UAV stops it (S = 0): any motion may close on the team-mate.
     """
     k, m = nb.shape[0], centers.shape[0]
-    size = 2 * k + m + 2
+    size = 2 * k + m + 2 + CAP_ROWS
     A = np.zeros((size, 3))
     h = np.empty(size)
     drift = np.zeros(size)
@@ -229,11 +244,31 @@ def first_order_rows(
             if rho[j] > 0.0:
                 near = max(dist - rho[j], 0.0)
                 h[r] = near * near - r_s * r_s
+                if cap_rho.shape[0] > 0 and cap_rho[j] > 0.0:
+                    h[r] = max(h[r], 0.0)
             else:
                 h[r] = d2[j] - r_s * r_s
-            drift[r] = -2.0 * alpha_v * rho[j] if uncertain else 0.0
             index[r] = j
             r += 1
+    speed, bind = alpha_v, -1
+    if cap_rho.shape[0] > 0:
+        for row in range(r):
+            j = index[row]
+            if cap_rho[j] > 0.0:
+                s = gamma_uav * h[row] / (2.0 * rho[j]) * (1.0 - 1e-9)  # b stays >= 0 at V = 0
+                if s < speed:
+                    speed, bind = s, row
+    for row in range(r):
+        drift[row] = -2.0 * speed * rho[index[row]]
+    if bind >= 0:
+        side = speed / math.sqrt(3.0)
+        for axis in range(3):
+            for sign in (1.0, -1.0):
+                A[r, axis] = sign
+                h[r] = h[bind]
+                drift[r] = side - gamma_uav * h[bind]
+                index[r] = index[bind]
+                r += 1
     sizes[0] = r
     for j in range(m):  # obstacle
         lx, ly, lz = p[0] - centers[j, 0], p[1] - centers[j, 1], p[2] - centers[j, 2]
@@ -267,7 +302,7 @@ def first_order_rows(
                 h[r] = r_c * r_c - far * far
             else:
                 h[r] = r_c * r_c - d2[j]
-            drift[r] = -2.0 * alpha_v * rho[j] if uncertain else 0.0
+            drift[r] = -2.0 * speed * rho[j]
             index[r] = j
             r += 1
     sizes[4] = r - start
@@ -302,11 +337,13 @@ def all_rows(
     size_margin,
     gammas,
     margins,
+    cap_rho,
 ):  # pragma: no cover (compiled)
-    """`first_order_rows` and, with ``occlusion``, `occlusion_family`'s rows after them, as one
-    stack with each row's rate and margin (``gammas``, ``margins``: one per family) and
-    ``b = gamma h + drift - margin``: (A, floats, ints, sizes), floats = [b, h, gamma, drift,
-    margin] (5, n) and ints = [kind, index] (2, n), sizes per family (the 6th: occlusion).
+    """`first_order_rows` (``cap_rho``: its speed cap's radii, for first-order rows) and, with
+    ``occlusion``, `occlusion_family`'s rows after them, as one stack with each row's rate and
+    margin (``gammas``, ``margins``: one per family) and ``b = gamma h + drift - margin``: (A,
+    floats, ints, sizes), floats = [b, h, gamma, drift, margin] (5, n) and ints = [kind, index]
+    (2, n), sizes per family (the 6th: occlusion).
     Four arrays, not nine: returning each array to Python costs about as much as building it."""
     A1, h1, drift1, index1, sizes1 = first_order_rows(
         p,
@@ -328,6 +365,8 @@ def all_rows(
         alpha_v,
         clearance,
         z_min,
+        gammas[0],
+        cap_rho,
     )
     if occlusion:
         A2, h2, drift2, index2 = occlusion_family(

@@ -50,6 +50,8 @@ DEFAULT_CAR_HALF_EXTENTS = (2.3, 0.9, 0.75)
 
 _EMPTY3 = np.zeros((0, 3))
 _ZEROS3 = np.zeros(3)
+_NO_CAP = np.zeros(0)
+"""`barrier_rows.first_order_rows`' ``cap_rho`` without a speed cap (second-order rows)."""
 
 
 def _vec3(name: str, value, default=None) -> np.ndarray:
@@ -396,6 +398,7 @@ class RowBuilder:
             cbf.occlusion_size_margin,
             self._gammas,
             self._margins,
+            _radii(ctx) if self.lag_tau == 0.0 else _NO_CAP,
         )
         b, h, gamma, drift, margin = floats
         kind, index = ints
