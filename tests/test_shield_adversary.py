@@ -342,14 +342,21 @@ def test_a_team_mate_pressing_from_a_lost_message_does_not_push_a_uav_into_the_c
 @pytest.mark.slow
 @pytest.mark.parametrize("family", ["random-held", "mixed"])
 @pytest.mark.parametrize(
-    "world",
-    [sa.WorldSpec(6, 20, "integrator", 0.9, 4106), sa.WorldSpec(1, 10, "integrator", 0.99, 4101)],
-    ids=lambda w: w.cell,
+    ("world", "timeout"),
+    [
+        (sa.WorldSpec(6, 20, "integrator", 0.9, 4106), 0.5),
+        (sa.WorldSpec(1, 10, "integrator", 0.99, 4101), 3.0),
+    ],
+    ids=lambda x: x.cell if isinstance(x, sa.WorldSpec) else f"timeout{x:g}",
 )
-def test_a_team_that_loses_most_messages_keeps_apart(world, family):
-    """20 and 10 UAVs in formation hearing 10 % and 1 % of their messages: a team-mate's ball
-    soon swallows a UAV, whose rows then stop it (the speed cap) instead of being given up in a
-    fallback, which let two UAVs of the n = 20 world inside R_s."""
+def test_a_team_that_loses_most_messages_keeps_apart(world, timeout, family):
+    """20 UAVs in formation hearing 10 % of their messages, and 10 hearing 1 % that keep a
+    silent team-mate for 3 s: a team-mate's ball soon swallows a UAV, whose rows then stop it
+    (the speed cap) instead of a fallback giving the pair up, which let two UAVs of the n = 20
+    world inside R_s."""
+    from uavtrack_env.presets import expert_config_from
+
+    config = expert_config_from("tuned", [f"margins.message_timeout={timeout}"])
     opts = sa.HarnessOptions(steps=300, seed=4100, progress=False)
-    run = sa.run_one(world, family, True, opts, expert_config("tuned"))
+    run = sa.run_one(world, family, True, opts, config)
     assert run["counts"]["collision"] == 0 and run["least"]["uav"] > 0.0, run
