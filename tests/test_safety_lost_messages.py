@@ -168,8 +168,8 @@ def test_the_speed_cap_in_closed_form():
 @pytest.mark.parametrize("distance, rho", [(1.0, 3.0), (CBF.r_s + 0.2, 0.5), (0.0, 0.4)])
 def test_a_ball_reaching_inside_r_s_stops_the_uav(distance, rho):
     """The team-mate may be anywhere in its ball, so any motion may close on it: the rows admit
-    V = 0 and nothing else (S = 0), instead of asking to flee the ball's centre, which the true
-    team-mate need not be near (the row that made the fallback give the pair up)."""
+    V = 0 and nothing else (S = 0), not a flight from the ball's centre, which the true
+    team-mate need not be near and which no command may be fast enough for."""
     rows = _one_ball(distance, rho)
     uav = rows.kind == UAV
     assert np.all(rows.b[uav] >= 0.0)  # V = 0 meets every uav row

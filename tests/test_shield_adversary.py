@@ -352,8 +352,8 @@ def test_a_team_mate_pressing_from_a_lost_message_does_not_push_a_uav_into_the_c
 def test_a_team_that_loses_most_messages_keeps_apart(world, timeout, family):
     """20 UAVs in formation hearing 10 % of their messages, and 10 hearing 1 % that keep a
     silent team-mate for 3 s: a team-mate's ball soon swallows a UAV, whose rows then stop it
-    (the speed cap) instead of a fallback giving the pair up, which let two UAVs of the n = 20
-    world inside R_s."""
+    (the speed cap) instead of a fallback giving the pair up. Without the cap two UAVs of the
+    n = 20 world come within R_s."""
     from uavtrack_env.presets import expert_config_from
 
     config = expert_config_from("tuned", [f"margins.message_timeout={timeout}"])

@@ -54,9 +54,9 @@ class ShieldMargins:
     """A team-mate not heard for this long (s) is forgotten (it collided, was parked or left
     R_c); until then its rows stay, on its last message and reachable set (`NeighbourTable`).
     At a drop probability p a team-mate in range stays silent this long with probability
-    p^(80 t): at 1 s, 2e-4 for p = 0.9 (at 0.5 s: 1.5 %, which let a UAV forget a team-mate
-    and fly into it); a longer timeout costs a UAV near one that did leave a wait while its
-    ball grows."""
+    p^(80 t): at 1 s, 2e-4 for p = 0.9 (at 0.5 s, 1.5 %: often enough for a UAV to forget a
+    team-mate within reach); a longer timeout costs a UAV near one that did leave a wait while
+    its ball grows."""
 
     def __post_init__(self) -> None:
         f = _Fields(self)
