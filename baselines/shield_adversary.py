@@ -136,6 +136,10 @@ class HarnessOptions:
     corridor: float | None = None
     """Half-width (m) of the car's path kept free of obstacles (None:
     `RandomWorldConfig.corridor`)."""
+    car_speed: tuple[float, float] | None = None
+    """Slowest and fastest cruise speed of the car (m/s; None: `RandomWorldConfig.target_speed`)."""
+    start_offset: float | None = None
+    """UAV start offset from formation (m; None: `RandomWorldConfig.start_offset`)."""
     team_sizes: tuple[int, ...] = GRID_N
     """The grid's team sizes n."""
     drops: tuple[float, ...] = GRID_DROP
@@ -148,6 +152,10 @@ class HarnessOptions:
             out["n_obstacles"] = tuple(self.n_obstacles)
         if self.corridor is not None:
             out["corridor"] = self.corridor
+        if self.car_speed is not None:
+            out["target_speed"] = tuple(self.car_speed)
+        if self.start_offset is not None:
+            out["start_offset"] = self.start_offset
         return out
 
 
@@ -752,14 +760,19 @@ def _table(key: str, rows: list[tuple[str, dict[str, Any]]]) -> list[str]:
 
 
 def _density(meta: dict[str, Any]) -> str:
-    """The worlds' density for the report's header, e.g. " (24-48 obstacles, corridor 1.5 m)";
-    empty for the default random worlds."""
+    """How the worlds differ from the default random world, for the report's header, e.g.
+    " (24-48 obstacles, corridor 1.5 m)"; empty for the default random worlds."""
     parts = []
     if meta.get("n_obstacles") is not None:
         lo, hi = meta["n_obstacles"]
         parts.append(f"{lo}-{hi} obstacles")
     if meta.get("corridor") is not None:
         parts.append(f"corridor {meta['corridor']:g} m")
+    if meta.get("car_speed") is not None:
+        lo, hi = meta["car_speed"]
+        parts.append(f"car at {lo:g}-{hi:g} m/s")
+    if meta.get("start_offset") is not None:
+        parts.append(f"starts {meta['start_offset']:g} m off formation")
     return f" ({', '.join(parts)})" if parts else ""
 
 
@@ -879,6 +892,20 @@ def parse_args(argv: list[str] | None = None) -> HarnessOptions:
         help="half-width (m) of the car's path kept free of obstacles (default 2.5)",
     )
     p.add_argument(
+        "--car-speed",
+        type=float,
+        nargs=2,
+        metavar=("MIN", "MAX"),
+        default=None,
+        help="the car's cruise speed range (m/s; default: the random world's, 0.3 1.0)",
+    )
+    p.add_argument(
+        "--start-offset",
+        type=float,
+        default=None,
+        help="UAV start offset from formation (m; default: the random world's, 0.2)",
+    )
+    p.add_argument(
         "--team-sizes",
         type=int,
         nargs="+",
@@ -929,6 +956,8 @@ def parse_args(argv: list[str] | None = None) -> HarnessOptions:
         search_options=search,
         n_obstacles=None if a.obstacles is None else tuple(a.obstacles),
         corridor=a.corridor,
+        car_speed=None if a.car_speed is None else tuple(a.car_speed),
+        start_offset=a.start_offset,
         team_sizes=tuple(a.team_sizes),
         drops=tuple(a.drops),
     )

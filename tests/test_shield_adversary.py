@@ -136,6 +136,17 @@ def test_cli_options():
             sa.parse_args(bad)
 
 
+def test_car_speed_and_start_offset_reach_the_world_and_the_report():
+    opts = sa.parse_args(["--car-speed", "2", "3", "--start-offset", "3"])
+    assert opts.random_world() == {"target_speed": (2.0, 3.0), "start_offset": 3.0}
+    assert sa._density({"car_speed": (2.0, 3.0), "start_offset": 3.0}) == (
+        " (car at 2-3 m/s, starts 3 m off formation)"
+    )
+    for bad in (["--car-speed", "3", "2"], ["--start-offset", "-1"]):
+        with pytest.raises(SystemExit):
+            sa.parse_args(bad)
+
+
 def test_the_grid_takes_other_team_sizes_and_drops():
     opts = sa.parse_args(["--team-sizes", "20", "--drops", "0.9", "0.99", "--worlds", "5"])
     worlds = sa.make_worlds(opts.worlds, opts.seed, opts.team_sizes, opts.drops)
