@@ -16,7 +16,9 @@ closed loop (`barrier_margin`), every candidate on the same world seed; it runs 
 ``--search-worlds`` worlds (default 12: one per grid cell), searching shielded and unshielded apart.
 
 ``--obstacles MIN MAX`` and ``--corridor M`` make the worlds denser than the default random
-world (8-16 obstacles, 2.5 m of free corridor along the car's path).
+world (8-16 obstacles, 2.5 m of free corridor along the car's path); ``--car-speed MIN MAX``
+and ``--start-offset M`` set the car's cruise speed (0.3-1 m/s) and how far from formation the
+UAVs start (0.2 m).
 
 Prints and writes OUT/report.md (violations per million agent-steps by kind, least true
 clearances, per grid cell totals, shield statuses, failing shielded runs), OUT/metrics.json
