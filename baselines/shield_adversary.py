@@ -160,6 +160,10 @@ class HarnessOptions:
             out["start_offset"] = self.start_offset
         return out
 
+    def grid_worlds(self) -> list[WorldSpec]:
+        """The worlds these options run (`make_worlds` over their grid)."""
+        return make_worlds(self.worlds, self.seed, self.team_sizes, self.drops)
+
 
 @dataclass(frozen=True)
 class WorldSpec:
@@ -647,7 +651,7 @@ def run_task(task: tuple[WorldSpec, str, HarnessOptions, ExpertConfig]) -> list[
 def run_harness(opts: HarnessOptions, config: ExpertConfig) -> list[dict[str, Any]]:
     """Every (world, family) task, in a Pool of ``opts.workers`` processes (1: in-process)."""
     families = selected_families(opts)
-    worlds = make_worlds(opts.worlds, opts.seed, opts.team_sizes, opts.drops)
+    worlds = opts.grid_worlds()
     # The search first: the longest tasks start early and the workers finish together.
     order = sorted(families, key=lambda f: f != SEARCH_FAMILY)
     tasks = [
@@ -835,10 +839,7 @@ def write_outputs(
     harness = {k: v for k, v in dataclasses.asdict(opts).items() if k != "out"}
     harness["out"] = str(opts.out)
     harness["families"] = selected_families(opts)
-    worlds = [
-        dataclasses.asdict(w)
-        for w in make_worlds(opts.worlds, opts.seed, opts.team_sizes, opts.drops)
-    ]
+    worlds = [dataclasses.asdict(w) for w in opts.grid_worlds()]
     record = config_record(opts.preset, None, config, command, harness=harness, worlds=worlds)
     summary = summarize(records)
     meta = {**harness, "command": command, "commit": record["commit"], "wall_s": wall_s}

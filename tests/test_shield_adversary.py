@@ -149,7 +149,7 @@ def test_car_speed_and_start_offset_reach_the_world_and_the_report():
 
 def test_the_grid_takes_other_team_sizes_and_drops():
     opts = sa.parse_args(["--team-sizes", "20", "--drops", "0.9", "0.99", "--worlds", "5"])
-    worlds = sa.make_worlds(opts.worlds, opts.seed, opts.team_sizes, opts.drops)
+    worlds = opts.grid_worlds()
     assert [w.cell for w in worlds] == [
         "n20-integrator-drop0.9", "n20-integrator-drop0.99", "n20-lag-drop0.9",
         "n20-lag-drop0.99", "n20-integrator-drop0.9",
