@@ -323,3 +323,27 @@ def test_a_pair_braking_row_counts_on_one_uavs_deceleration():
     second = SafetyFilter(lag_tau=TAU).rows(ctx)  # no braking rows
     assert one < second.b[r] + second.margin[r] < both
     assert rows.b[r] + rows.margin[r] == pytest.approx(one, rel=1e-12)
+
+
+def test_a_link_braking_row_counts_on_one_uavs_deceleration():
+    """A UAV leaving at 3 m/s a team-mate at rest 4 m inside R_c: its link row is the
+    braking-distance row with its own deceleration a, s_b = s - w^2 / (2 a), not 2a (looser
+    here, and tighter than the second-order row). A team-mate whose link row takes slack
+    (connectivity is soft) does not brake for it."""
+    w, gap = 3.0, 4.0
+    ctx = SafetyContext(
+        position=[0.0, 0.0, 3.0], yaw=0.0, neighbours=[[CBF.r_c - gap, 0.0, 3.0]],
+        velocity=[-w, 0.0, 0.0], neighbour_velocities=[[0.0, 0.0, 0.0]],
+    )  # fmt: skip
+    shield = SafetyFilter(lag_tau=TAU, accel_bound=6.0)
+    rows = shield.rows(ctx)
+    r = np.flatnonzero(rows.kind == CONNECT)[0]
+    a, norm, gamma = shield.row_builder.brake_decel, np.linalg.norm(rows.A[r]), CBF.gamma_c
+    assert norm == pytest.approx(2 * (CBF.r_c - gap))
+    s = shield.cbf.r_c - (CBF.r_c - gap)  # the shield's R_c carries its margin
+    one, both = (
+        norm * (w + TAU * a * (gamma * (s - w * w / (2 * d)) / w - 1.0)) for d in (a, 2 * a)
+    )
+    second = SafetyFilter(lag_tau=TAU).rows(ctx)  # no braking rows
+    assert one < both < second.b[r] + second.margin[r]
+    assert rows.b[r] + rows.margin[r] == pytest.approx(one, rel=1e-12)

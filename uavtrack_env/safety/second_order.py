@@ -200,11 +200,11 @@ def _braking(
     s is the distance left before the row's limit (to the clearance of an obstacle or of the
     car's box, h / ||grad h|| for its frustum, the floor, R_s from a team-mate, or R_c), w > 0
     the speed closing it along m = A / ||A|| (relative to the car's faces for the car), a the
-    deceleration one UAV guarantees (``brake_decel``; a pair row counts on it alone, since a
-    team-mate whose fallback gave the row up does not brake for it, a link on 2a: the
-    team-mate brakes as much). With v-dot = (u - v) / tau (exact under
+    deceleration one UAV guarantees (``brake_decel``; pair and link rows count on it alone: a
+    team-mate whose fallback gave its pair row up, or whose link row took slack, connectivity
+    being soft, does not brake for it). With v-dot = (u - v) / tau (exact under
     `ShieldOptions.accel_bound`) and the distance convex along the motion, ``m . u <= m . v +
-    tau a (gamma s_b / w - 1)`` keeps ``s_b = s - w^2 / (2 a_row)`` from decreasing faster than
+    tau a (gamma s_b / w - 1)`` keeps ``s_b = s - w^2 / (2 a)`` from decreasing faster than
     ``-gamma s_b``: at s_b = 0 it asks for a deceleration of exactly a. Rows not closing (w <=
     0) get +inf.
     """
@@ -212,9 +212,6 @@ def _braking(
     out = np.full(n, np.inf)
     norm = np.sqrt(_rowdot(A, A))
     gap = np.zeros(n)
-    decel = np.full(n, a)
-    for r in range(starts[4], ends[4]):
-        decel[r] = 2.0 * a  # a link: the team-mate brakes as much
     for r in range(starts[1], ends[1]):
         gap[r] = math.sqrt(max(h[r] + standoff2, 0.0)) - standoff
     for r in range(starts[2], ends[2]):
@@ -240,7 +237,7 @@ def _braking(
     for r in range(n):
         w = closing[r]
         if r < last and w > 1e-9 and norm[r] > 1e-12:
-            s_b = gap[r] - w * w / (2.0 * decel[r])
+            s_b = gap[r] - w * w / (2.0 * a)
             m_v = _dot3(A[r, 0], A[r, 1], A[r, 2], v[0], v[1], v[2]) / norm[r]
             out[r] = norm[r] * (m_v + ta * (gamma1[r] * s_b / w - 1.0))
     return out
