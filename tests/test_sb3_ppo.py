@@ -33,7 +33,9 @@ def test_shared_ppo_trains_the_weights_of_sb3s_ppo_bit_for_bit():
     shared = _trained(SharedPPO, optimizer_kwargs=OPTIMIZER_KWARGS)
     assert all(np.array_equal(a, b) for a, b in zip(plain, shared, strict=True))
     torch.manual_seed(0)
-    untrained = PPO("MlpPolicy", VectorSharedPolicyVecEnv(2, scenario="random"), **SMALL)
+    vec = VectorSharedPolicyVecEnv(2, scenario="random")
+    untrained = PPO("MlpPolicy", vec, **SMALL)
+    vec.close()
     before = [p.detach().numpy() for p in untrained.policy.parameters()]
     assert not all(np.array_equal(a, b) for a, b in zip(before, shared, strict=True))
 
