@@ -9,9 +9,10 @@ in the form of Table VI), DIR/config.json and DIR/metrics.json (every episode in
 `uavtrack_env.runner.run_episode`). The expert and the shield use ``--preset`` (default 'tuned')
 with ``--set`` overrides. The learned policies are read from the output directories of ``python -m
 train.ppo`` (``--ppo``, ``--ppo-shield``, ``--run``) or ``python -m train.rllib_ppo``
-(``--run``); a run trained shielded is evaluated shielded. Episodes use evaluate's world
-(detector noise on; ``--dynamics`` defaults to the paper's single integrator, eq. (3), under
-which the shield's guarantees hold).
+(``--run``); a run trained shielded is evaluated shielded. ``--ensemble DIR DIR ...`` evaluates
+several ``train.ppo`` runs (e.g. seeds) as one policy, the mean of their actions. Episodes use
+evaluate's world (detector noise on; ``--dynamics`` defaults to the paper's single integrator,
+eq. (3), under which the shield's guarantees hold).
 """
 
 from __future__ import annotations
@@ -68,6 +69,32 @@ class SB3Policy:
         return dict(zip(agents, actions, strict=True))
 
 
+class EnsemblePolicy:
+    """The mean of several policies' actions, each fed the same observations (deep-ensemble
+    averaging: independently trained seeds err in different directions, their mean less).
+
+    Members keep their own input history and normalisation; the mean of actions in [-1, 1]
+    stays in [-1, 1].
+    """
+
+    def __init__(self, members: list[Policy]) -> None:
+        if not members:
+            raise ValueError("an ensemble needs at least one member policy")
+        self.members = list(members)
+
+    def reset(self, layout: Any = None) -> None:
+        """A new episode: each member that keeps a history forgets it."""
+        for member in self.members:
+            if hasattr(member, "reset"):
+                member.reset(layout)
+
+    def __call__(self, obs: dict, infos: dict) -> dict[str, np.ndarray]:
+        actions = [member(obs, infos) for member in self.members]
+        return {
+            a: np.mean([act[a] for act in actions], axis=0).astype(np.float32) for a in actions[0]
+        }
+
+
 def load_policy(model_path: Path, norm_path: Path | None = None, frames: int = 1) -> SB3Policy:
     """A saved SB3 model (.zip) as a deterministic `SB3Policy` over ``frames`` stacked
     observations, with its VecNormalize statistics (.pkl) when ``norm_path`` exists."""
@@ -116,6 +143,26 @@ def load_any_run(run_dir: Path) -> tuple[str, bool, Policy]:
     raise ValueError(
         f"{run_dir} is neither a train.ppo run (model.zip) nor a train.rllib_ppo run (checkpoint/)"
     )
+
+
+def load_ensemble(run_dirs: list[Path]) -> tuple[str, bool, EnsemblePolicy]:
+    """(label, shielded, policy) of the mean of several ``train.ppo`` runs' actions; the runs
+    must agree on the shield and on the Lagrangian."""
+    if len(run_dirs) < 2:
+        raise ValueError(f"--ensemble needs at least two run directories, got {len(run_dirs)}")
+    loaded = [load_run(d) for d in run_dirs]
+    kinds = {(bool(a["shield"]), bool(a.get("lagrangian", False))) for _, a in loaded}
+    if len(kinds) > 1:
+        raise ValueError(
+            f"--ensemble runs must all be shielded or all unshielded, and all PPO or all "
+            f"PPO-Lagrangian; got {sorted(kinds)} from {[str(d) for d in run_dirs]}"
+        )
+    from train.ppo import policy_label
+
+    shielded, lagrangian = kinds.pop()
+    name, _, shield = policy_label(shielded, lagrangian).partition(" + ")
+    label = f"{name} ensemble of {len(loaded)}" + (f" + {shield}" if shield else "")
+    return label, shielded, EnsemblePolicy([p for p, _ in loaded])
 
 
 # ------------------------------------------------------------------- episode
@@ -230,6 +277,16 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         "if it trained shielded, named by its settings (PPO, PPO-Lagrangian, RLlib PPO)",
     )
     ap.add_argument(
+        "--ensemble",
+        type=Path,
+        nargs="+",
+        action="append",
+        default=[],
+        metavar="DIR",
+        help="train.ppo output directories evaluated as one policy, the mean of their actions "
+        "(repeatable: one ensemble per flag)",
+    )
+    ap.add_argument(
         "--cloned", type=Path, help="a train.ppo run with --bc-episodes: its cloned policy"
     )
     ap.add_argument(
@@ -314,13 +371,17 @@ def _entrants(
     for run_dir in args.run:
         label, shielded, policy = load_any_run(run_dir)
         entrants.append((label, shielded, lambda env, p=policy: p))
+    for run_dirs in args.ensemble:
+        label, shielded, policy = load_ensemble(run_dirs)
+        entrants.append((label, shielded, lambda env, p=policy: p))
     if args.cloned is not None:
         policy, run_args = load_run(args.cloned, cloned=True)
         label = "cloned + shield" if run_args["shield"] else "cloned"
         entrants.append((label, bool(run_args["shield"]), lambda env, p=policy: p))
     if not entrants:
         raise SystemExit(
-            "nothing to compare: give --ppo, --ppo-shield, --run or --cloned (or drop --no-expert)"
+            "nothing to compare: give --ppo, --ppo-shield, --run, --ensemble or --cloned "
+            "(or drop --no-expert)"
         )
     return entrants
 
@@ -362,6 +423,9 @@ def _header(args: argparse.Namespace) -> str:
             budget.append(f"{label}: {info.get('num_timesteps', '?')} agent-steps ({run_dir})")
     for run_dir in args.run:
         budget.append(f"{_budget(Path(run_dir))} ({run_dir})")
+    for run_dirs in args.ensemble:
+        steps = [_budget(Path(d)) for d in run_dirs]
+        budget.append(f"ensemble: {', '.join(steps)} ({', '.join(map(str, run_dirs))})")
     if args.cloned is not None:
         info = json.loads((Path(args.cloned) / "args.json").read_text())
         budget.append(
