@@ -581,7 +581,14 @@ def test_car_path_never_touches_an_obstacle(make_env, scenario):
 
 
 @pytest.mark.parametrize(
-    "n_uavs, spread", [(3, {}), (5, {}), (3, {"start_offset": 3.0, "start_heading_offset": 0.3})]
+    "n_uavs, spread",
+    [
+        (3, {}),
+        (5, {}),
+        (3, {"start_offset": 3.0, "start_heading_offset": 0.3}),
+        (10, {"start_offset": 3.0, "start_heading_offset": 0.3}),  # placed UAV by UAV
+        (20, {"start_offset": 3.0}),
+    ],
 )
 def test_random_worlds_start_feasible(make_env, n_uavs, spread):
     env = make_env(scenario="random", n_uavs=n_uavs, random_world=spread)

@@ -134,40 +134,72 @@ def _car_in_view(positions: np.ndarray, yaws: np.ndarray, cfg: EnvConfig) -> boo
     return True
 
 
+def _draw_poses(
+    rng: np.random.Generator, refs: np.ndarray, offset: float, heading: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Uniformly jittered formation poses of the UAVs whose references are ``refs``."""
+    n, depth = len(refs), 1.0 / refs[:, 2]
+    angle = refs[:, 3] + rng.uniform(-0.03, 0.03, n)
+    horizontal = depth + rng.uniform(-offset, offset, n)
+    positions = np.column_stack(
+        [
+            horizontal * np.cos(angle),
+            horizontal * np.sin(angle),
+            CAR_HALF_EXTENTS[2] + refs[:, 1] * depth + rng.uniform(-offset, offset, n),
+        ]
+    )
+    if offset > 0.2:  # also move along the ring
+        tangent = np.column_stack([-np.sin(angle), np.cos(angle)])
+        positions[:, :2] += tangent * rng.uniform(-offset, offset, (n, 1))
+    yaws = np.arctan2(-positions[:, 1], -positions[:, 0])
+    if heading > 0:
+        yaws = yaws + rng.uniform(-heading, heading, n)
+    return positions, yaws
+
+
 def _formation_start(
     rng: np.random.Generator, refs: np.ndarray, offset: float, heading: float, cfg: EnvConfig
 ) -> tuple[np.ndarray, np.ndarray]:
     """Start poses near the formation: uniform offsets, redrawn until every UAV is 0.4 m above
     the floor and R_s + 0.4 m from the others, the graph is connected and (beyond the default
-    0.2 m) every camera sees the car; the default's first draw always passes."""
-    n, depth = len(refs), 1.0 / refs[:, 2]
-    for _ in range(1000):
-        angle = refs[:, 3] + rng.uniform(-0.03, 0.03, n)
-        horizontal = depth + rng.uniform(-offset, offset, n)
-        positions = np.column_stack(
-            [
-                horizontal * np.cos(angle),
-                horizontal * np.sin(angle),
-                CAR_HALF_EXTENTS[2] + refs[:, 1] * depth + rng.uniform(-offset, offset, n),
-            ]
-        )
-        if offset > 0.2:  # also move along the ring
-            tangent = np.column_stack([-np.sin(angle), np.cos(angle)])
-            positions[:, :2] += tangent * rng.uniform(-offset, offset, (n, 1))
-        yaws = np.arctan2(-positions[:, 1], -positions[:, 0])
-        if heading > 0:
-            yaws = yaws + rng.uniform(-heading, heading, n)
+    0.2 m) every camera sees the car; the default's first draw always passes. A large team
+    whose whole draws keep failing is placed UAV by UAV, each redrawn on its own."""
+    n = len(refs)
+    min_gap, floor = cfg.violations.r_s + 0.4, cfg.random_world.min_start_altitude
+
+    def feasible(positions: np.ndarray, yaws: np.ndarray) -> bool:
         if offset > 0.2 and not _car_in_view(positions, yaws, cfg):
-            continue
+            return False
         pair = np.linalg.norm(positions[:, None] - positions[None], axis=-1)
-        apart = n < 2 or pair[~np.eye(n, dtype=bool)].min() >= cfg.violations.r_s + 0.4
-        if (
-            positions[:, 2].min() >= cfg.random_world.min_start_altitude
-            and apart
-            and connected(pair, np.ones(n, bool), cfg.comms.r_c)
-        ):
+        apart = len(positions) < 2 or pair[~np.eye(len(positions), dtype=bool)].min() >= min_gap
+        return bool(positions[:, 2].min() >= floor and apart)
+
+    def connected_team(positions: np.ndarray) -> bool:
+        pair = np.linalg.norm(positions[:, None] - positions[None], axis=-1)
+        return connected(pair, np.ones(n, bool), cfg.comms.r_c)
+
+    for _ in range(1000):
+        positions, yaws = _draw_poses(rng, refs, offset, heading)
+        if feasible(positions, yaws) and connected_team(positions):
             return positions, yaws
-    raise ValueError(f"no feasible start within start_offset = {offset} m after 1000 draws")
+    for _ in range(100):
+        positions, yaws = np.zeros((n, 3)), np.zeros(n)
+        for i in range(n):
+            for _attempt in range(1000):
+                positions[i], yaws[i] = (
+                    a[0] for a in _draw_poses(rng, refs[i : i + 1], offset, heading)
+                )
+                if feasible(positions[: i + 1], yaws[: i + 1]):
+                    break
+            else:
+                break
+        else:
+            if connected_team(positions):
+                return positions, yaws
+    raise ValueError(
+        f"no feasible start within start_offset = {offset} m for {n} UAVs: 1000 team draws and "
+        "100 UAV-by-UAV placements failed; lower random_world.start_offset"
+    )
 
 
 def random_layout(rng: np.random.Generator, cfg: EnvConfig) -> Layout:
