@@ -186,9 +186,8 @@ def _formation_start(
         positions, yaws = np.zeros((n, 3)), np.zeros(n)
         for i in range(n):
             for _attempt in range(1000):
-                positions[i], yaws[i] = (
-                    a[0] for a in _draw_poses(rng, refs[i : i + 1], offset, heading)
-                )
+                pose, yaw = _draw_poses(rng, refs[i : i + 1], offset, heading)
+                positions[i], yaws[i] = pose[0], yaw[0]
                 if feasible(positions[: i + 1], yaws[: i + 1]):
                     break
             else:
