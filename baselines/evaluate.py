@@ -199,7 +199,9 @@ def evaluate_world(
         from uavtrack_env.plotting import all_figures
 
         plt.imsave(out / "frame.png", env.render())
-        cbf = expert.cbf.resolve(env.config.violations.r_s, env.config.comms.r_c)
+        cbf = expert.cbf.resolve(
+            env.config.violations.r_s, env.config.comms.r_c, env.config.uav_radius
+        )
         all_figures(
             result.recorder,
             env.config,

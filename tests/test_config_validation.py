@@ -291,6 +291,13 @@ BAD = [
     case(CBFConfig, "occlusion_model", "static", V, r"must be 'paper' or 'moving-target'"),
     case(CBFConfig, "occlusion_point", "corner", V, r"must be 'centre', 'axis' or 'edges'"),
     case(CBFConfig, "occlusion_size_margin", 1, T, r"must be True or False, got 1 \(int\)"),
+    case(
+        CBFConfig,
+        "team_mate_radius",
+        -0.25,
+        V,
+        rf"team_mate_radius must be None \(the world's UAV radius\) or {NONNEG}",
+    ),
     # ------------------------------------------------------------------ UKFConfig
     case(UKFConfig, "q_features", (1e-4, 1e-4, 1e-5), V, r"q_features must be a tuple of 4"),
     case(UKFConfig, "q_position", 0.0, V, rf"q_position must be {POS}"),

@@ -312,6 +312,53 @@ def test_box_occluder_rows_match_finite_differences(point, seed, model):
     check_family(rows, OCCLUSION, h_of, rng)
 
 
+@pytest.mark.parametrize("model", ["paper", "moving-target"])
+@pytest.mark.parametrize("seed", range(4))
+def test_team_mate_occluder_rows_match_finite_differences(model, seed):
+    """Team-mates occlude as boxes of half size ``team_mate_radius`` + their message ball,
+    moving at their velocities: h equals the independent 'edges' minimisation and -A V + drift
+    the finite-difference rate with the UAV, the team-mate (and for 'moving-target' the car)
+    moving. The rows are named by the team-mate's id; a radius of 0 (the paper) has none."""
+    rng = np.random.default_rng(600 + seed)
+    radius, rho = 0.25, np.array([0.0, 0.4, 0.0])
+    cbf = CBFConfig(occlusion_model=model, occlusion_point="edges", team_mate_radius=radius)
+    p = np.array([0.0, 0.0, 3.0])
+    q = np.array([15.0, 0.0, 0.75]) + rng.uniform(-2, 2, 3) * [1, 1, 0]
+    along = np.array([0.3, 0.55, 0.7])[:, None] * (q - p)  # on or near the sight line
+    nb = p + along + rng.uniform(-1.5, 1.5, (3, 3))
+    nb_v = rng.uniform(-3, 3, (3, 3))
+    ctx = SafetyContext(
+        position=p, yaw=0.0, neighbours=nb, neighbour_velocities=nb_v, neighbour_radius=rho,
+        neighbour_ids=(4, 7, 9), target_position=q, target_velocity=rng.uniform(-2, 2, 3),
+        target_heading=0.0,
+    )  # fmt: skip
+    rows = build_rows(ctx, cbf.resolve())
+    mates = np.flatnonzero((rows.kind == OCCLUSION) & (rows.index < 0))
+    assert len(mates) == 3
+    vq, ts = ctx.target_velocity, cbf.theta_star
+    for r in mates:
+        j = -rows.index[r] - 1
+        half = np.full(3, radius + rho[j])
+        if model == "paper":
+            n = lambda t, V: q - p  # noqa: E731
+        else:
+            n = lambda t, V: q + t * vq - (p + t * V)  # noqa: E731
+
+        def h_of(V, t, j=j, half=half, n=n):
+            return edges_occl_h(p + t * V, nb[j] + t * nb_v[j], half, n(t, V), ts)
+
+        assert rows.h[r] == pytest.approx(h_of(np.zeros(3), 0.0), abs=1e-9)
+        for _ in range(3):
+            V = rng.uniform(-10, 10, 3)
+            fd = fd_rate(lambda t, V=V, h_of=h_of: h_of(V, t))
+            assert -rows.A[r] @ V + rows.drift[r] == pytest.approx(fd, rel=1e-5, abs=1e-5)
+    names = rows.names(ctx.neighbour_ids)
+    assert sorted(names[r] for r in mates) == [f"occlusion:uav:{i}" for i in (4, 7, 9)]
+    paper = build_rows(ctx, dataclasses.replace(cbf, team_mate_radius=0.0).resolve())
+    assert not (paper.index[paper.kind == OCCLUSION] < 0).any()
+    assert paper.size == rows.size - 3
+
+
 @pytest.mark.parametrize("seed", range(20))
 def test_edges_occluder_has_the_least_angle_of_the_box(seed):
     """Where the sight line misses the box, no point of its surface is closer in angle to the

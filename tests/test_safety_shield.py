@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 from scipy.optimize import linprog, minimize
@@ -10,6 +12,7 @@ from uavtrack_env.config import DT
 from uavtrack_env.geometry import cam_to_world_vec, world_to_cam_vec
 from uavtrack_env.safety import SOLVERS, SafetyContext, SafetyFilter, build_rows
 from uavtrack_env.safety.config import CBFConfig
+from uavtrack_env.safety.shield import pairs_answered
 
 BACKENDS = list(SOLVERS)
 
@@ -282,6 +285,15 @@ def test_bad_construction_raises():
         SafetyFilter(not_an_option=1)
 
 
+@pytest.mark.parametrize(
+    ("own_id", "match"), [(1.5, "own_id must be an int"), (True, "own_id must be an int"),
+                          (4, "also in neighbour_ids")],
+)  # fmt: skip
+def test_bad_own_id_raises(own_id, match):
+    with pytest.raises(ValueError, match=match):
+        ctx_with(neighbours=[[6, 0, 5]], neighbour_ids=(4,), own_id=own_id)
+
+
 def test_report_logs_barrier_values_by_name():
     ctx = ctx_with(neighbours=[[6, 0, 5]], neighbour_ids=(4,), obstacle_centers=[[0, 8, 5]],
                    obstacle_half_extents=[[1, 1, 1]], target_position=[15, 0, 0.75])  # fmt: skip
@@ -407,3 +419,115 @@ def test_connectivity_is_kept_where_it_conflicts_only_with_occlusion():
     assert status == "relaxed"
     assert v[0] <= 1e-6  # the link holds; the occlusion row took the slack
     np.testing.assert_allclose(v[1:], [0.5, 0.0], atol=1e-6)
+
+
+def squeezed(**kw):
+    """A UAV 1.9 m from a team-mate on each side along x (inside R_s = 2 m): each pair row
+    asks it to move away from its team-mate, so no command keeps both."""
+    return ctx_with(neighbours=[[1.9, 0, 5], [-1.9, 0, 5]], **kw)
+
+
+def pair_excess(f, ctx, out):
+    """How far (m/s on unit rows) ``out`` breaks each pair row, by team-mate slot."""
+    rows = f.rows(ctx)
+    V = global_v(out, ctx.yaw)
+    uav = rows.kind == 0
+    excess = (rows.A[uav] @ V - rows.b[uav]) / np.linalg.norm(rows.A[uav], axis=1)
+    return dict(zip(rows.index[uav].tolist(), excess.tolist(), strict=True))
+
+
+@pytest.mark.parametrize("solver", BACKENDS)
+@pytest.mark.parametrize("ids", [(2, 0), (0, 2)])
+def test_squeezed_fallback_keeps_the_pair_row_it_answers_for(solver, ids):
+    """Between two team-mates, ids 0 and 2, with no velocities: UAV 1 answers for its pair
+    with id 2 (the lower id answers), so it keeps that row whole and gives up the other.
+    Unranked (no own id), the fallback splits the violation over both rows."""
+    f = SafetyFilter(solver=solver)
+    u = np.zeros(4)
+    out, rep = f.certify(u, squeezed(neighbour_ids=ids, own_id=1))
+    excess = pair_excess(f, squeezed(), out)
+    kept, lost = ids.index(2), ids.index(0)
+    assert rep.status == "fallback" and rep.gave_up == ["uav:0"], rep.gave_up
+    assert excess[kept] <= 1e-6 < excess[lost]
+    out, rep = f.certify(u, squeezed(neighbour_ids=ids))
+    assert sorted(rep.gave_up) == ["uav:0", "uav:2"]
+    assert min(pair_excess(f, squeezed(), out).values()) > 1e-6
+
+
+@pytest.mark.parametrize("solver", BACKENDS)
+def test_the_uav_closing_the_gap_answers_for_the_pair(solver):
+    """With velocities the one closing the gap faster answers, whatever the ids: UAV 1 flying
+    at the team-mate id 0 (which holds still) keeps that row; the team-mate id 2 flying at
+    UAV 1 answers for theirs, so UAV 1 gives that one up."""
+    f = SafetyFilter(solver=solver)
+    moving = {
+        "velocity": [-1.0, 0.0, 0.0],
+        "neighbour_velocities": [[-2.5, 0.0, 0.0], [0.0, 0.0, 0.0]],
+        "neighbour_ids": (2, 0),
+        "own_id": 1,
+    }
+    out, rep = f.certify(np.zeros(4), squeezed(**moving))
+    excess = pair_excess(f, squeezed(), out)
+    assert rep.status == "fallback" and rep.gave_up == ["uav:2"], rep.gave_up
+    assert excess[1] <= 1e-6 < excess[0]
+
+
+def test_pairs_answered_split_each_pair_between_its_two_uavs():
+    """Each of three UAVs at random places and velocities computes which of its pairs it
+    answers for; every pair is answered for by exactly one of its two UAVs, with velocities
+    (the faster closer) and without (the lower id), and ties fall to the lower id."""
+    rng = np.random.default_rng(7)
+    for trial in range(50):
+        p = rng.normal(size=(3, 3)) * 3
+        v = rng.normal(size=(3, 3))
+        if trial % 5 == 0:
+            v[:] = 0.0  # every pair a tie
+        for with_v in (True, False):
+            answers = {}
+            for i in range(3):
+                others = [j for j in range(3) if j != i]
+                kw = {"velocity": v[i], "neighbour_velocities": v[others]} if with_v else {}
+                ctx = SafetyContext(
+                    position=p[i], yaw=0.0, neighbours=p[others],
+                    neighbour_ids=tuple(others), own_id=i, **kw,
+                )  # fmt: skip
+                got = pairs_answered(ctx, np.arange(2))
+                answers.update({(i, j): bool(a) for j, a in zip(others, got, strict=True)})
+            for i in range(3):
+                for j in range(i + 1, 3):
+                    assert answers[i, j] != answers[j, i]
+                    if not with_v or trial % 5 == 0:
+                        assert answers[i, j]  # the lower id
+    ctx = SafetyContext(position=np.zeros(3), yaw=0.0, neighbours=[[1.0, 0, 0]])
+    assert pairs_answered(ctx, np.arange(1)) is None  # no ids: no ranking
+
+
+@pytest.mark.parametrize("radius", [0.25, 0.0])
+def test_a_team_mate_crossing_the_sight_line_is_kept_out_of_the_cone(radius):
+    """A UAV hovering 15 m from a parked car; a team-mate 3 m away crosses its sight line at
+    1 m/s. With team-mate occlusion rows (radius 0.25 m) the UAV moves so that the team-mate's
+    least angle to the sight line stays at theta* or above (the row's h >= 0 in closed loop);
+    with the paper's rows (obstacles only) it hovers and the team-mate crosses the line."""
+    cbf = CBFConfig(occlusion_point="edges", team_mate_radius=radius).resolve()
+    f = SafetyFilter(cbf=cbf)
+    p, q = np.array([0.0, 0.0, 3.0]), np.array([15.0, 0.0, 0.75])
+    sight = (q - p) / np.linalg.norm(q - p)
+    side = np.array([0.0, 1.0, 0.0])
+    mate, mate_v = p + 3.0 * (np.cos(0.9) * sight + np.sin(0.9) * side), -side
+    least = np.inf
+    for _ in range(int(4.0 / DT)):
+        ctx = SafetyContext(
+            position=p, yaw=0.0, neighbours=[mate], neighbour_velocities=[mate_v],
+            neighbour_ids=(1,), own_id=0, target_position=q, target_heading=0.0,
+        )  # fmt: skip
+        u, rep = f.certify(np.zeros(4), ctx)
+        assert rep.status != "fallback", rep
+        p = p + DT * global_v(u, 0.0)
+        mate = mate + DT * mate_v
+        exact = SafetyContext(position=p, yaw=0.0, neighbours=[mate], target_position=q)
+        rows = build_rows(exact, dataclasses.replace(cbf, team_mate_radius=0.25))
+        least = min(least, rows.h[(rows.kind == 5) & (rows.index < 0)].min(initial=np.inf))
+    if radius > 0:  # first-order rows without a discrete-time margin: Euler at 80 Hz
+        assert least >= -5e-3  # lets h dip O(dt^2) per step (5e-3 rad = 0.3 deg)
+    else:
+        assert least < -0.2  # it crossed the cone: the rows are what keeps it out

@@ -348,7 +348,9 @@ class OnboardAgent:
     ) -> None:
         self.name, self.index, self.config = name, index, config
         margins = config.margins
-        cbf = config.cbf.resolve(env_config.violations.r_s, env_config.comms.r_c)
+        cbf = config.cbf.resolve(
+            env_config.violations.r_s, env_config.comms.r_c, env_config.uav_radius
+        )
         for what, level in (("obstacle_clearance", cbf.obstacle_clearance), ("z_min", cbf.z_min)):
             if level - env_config.uav_radius < margins.surface_gap:
                 raise ValueError(
@@ -488,6 +490,7 @@ class OnboardAgent:
                 obstacle_centers=self.obstacle_centers,
                 obstacle_half_extents=self.obstacle_half_extents,
                 neighbour_ids=belief.ids,
+                own_id=self.index,
                 **target,
             )
         return self._context

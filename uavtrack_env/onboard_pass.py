@@ -179,9 +179,9 @@ def input_rows_of(
 
 
 def max_rows(n_mates: int, n_obstacles: int) -> int:
-    """The most CBF rows one UAV can have: uav and connect per team-mate, obstacle and
-    occlusion per box, the car, the floor and the speed cap."""
-    return 2 * n_mates + 2 * n_obstacles + 2 + CAP_ROWS
+    """The most CBF rows one UAV can have: uav, connect and occlusion per team-mate, obstacle
+    and occlusion per box, the car, the floor and the speed cap."""
+    return 3 * n_mates + 2 * n_obstacles + 2 + CAP_ROWS
 
 
 @numba.njit(cache=True)
@@ -203,7 +203,8 @@ def observe_pass(
 
     ``table_p`` = [dt, accel (the lag model's a_max, 0: none), speed bound, timeout, believe's
     accel (-1: none)]; ``box_p``: `car_box_arrays`'s params then [recovery steps, pad cut
-    boxes]; ``row_p`` = [d_s, r_s, r_c, alpha_v, clearance, z_min, theta*, point mode];
+    boxes]; ``row_p`` = [d_s, r_s, r_c, alpha_v, clearance, z_min, theta*, point mode, team-mates'
+    occluder half size];
     ``flags`` = [box obstacles, car as obstacle, occlusion rows, moving-target occlusion,
     occlusion size margin, make way] (`safety.cbf.RowBuilder.pass_params`); ``second_p``:
     `second_order.second_order_rows`' params (lag_tau > 0: the rows are second order).
@@ -222,6 +223,7 @@ def observe_pass(
     moving, size_margin, way = flags[3], flags[4], flags[5]
     d_s, r_s, r_c, alpha_v = row_p[0], row_p[1], row_p[2], row_p[3]
     clearance, z_min, theta_star, mode = row_p[4], row_p[5], row_p[6], int(row_p[7])
+    mate_half = row_p[8]
     zeros3 = np.zeros(3)
     r = 0
     for j in range(slots.shape[0]):
@@ -284,8 +286,9 @@ def observe_pass(
         A, floats, ints2, sizes = all_rows(
             row[0:3], motion[0], rho, centers, halves, box_model, car and car_rows,
             q, vq, half, 0.0, growth, car and box[12] > 0.5, d_s, r_s, r_c, alpha_v, clearance,
-            z_min, car and occlusion and m > 0, theta_star, mode, moving, size_margin, gammas,
+            z_min, car and occlusion, theta_star, mode, moving, size_margin, gammas,
             margins, radii[0] if second_p[0] <= 0.0 else radii[0][:0],
+            motion[1] if second_p[0] > 0.0 else np.zeros_like(motion[1]), mate_half,
         )  # fmt: skip
         if second_p[0] > 0.0:
             floats[0] = second_order_rows(

@@ -338,12 +338,18 @@ def all_rows(
     gammas,
     margins,
     cap_rho,
+    nb_v,
+    mate_half,
 ):  # pragma: no cover (compiled)
     """`first_order_rows` (``cap_rho``: its speed cap's radii, for first-order rows) and, with
     ``occlusion``, `occlusion_family`'s rows after them, as one stack with each row's rate and
     margin (``gammas``, ``margins``: one per family) and ``b = gamma h + drift - margin``: (A,
     floats, ints, sizes), floats = [b, h, gamma, drift, margin] (5, n) and ints = [kind, index]
     (2, n), sizes per family (the 6th: occlusion).
+
+    With ``mate_half`` > 0 (not in the paper) the team-mates occlude too: team-mate j is a box
+    of half size ``mate_half + rho_j`` at ``nb[j]`` moving at ``nb_v[j]``, its occlusion row
+    after the obstacles' with index ``-(j + 1)``.
     Four arrays, not nine: returning each array to Python costs about as much as building it."""
     A1, h1, drift1, index1, sizes1 = first_order_rows(
         p,
@@ -368,12 +374,24 @@ def all_rows(
         gammas[0],
         cap_rho,
     )
+    A2, h2, drift2, index2 = A1[:0], h1[:0], drift1[:0], index1[:0]
     if occlusion:
         A2, h2, drift2, index2 = occlusion_family(
-            p, q, vq, centers, half, theta_star, mode, moving_target, size_margin
-        )
-    else:
-        A2, h2, drift2, index2 = A1[:0], h1[:0], drift1[:0], index1[:0]
+            p, q, vq, centers, half, np.zeros_like(centers), theta_star, mode, moving_target,
+            size_margin,
+        )  # fmt: skip
+        k = nb.shape[0]
+        if mate_half > 0.0 and k > 0:
+            grown = np.empty((k, 3))
+            for j in range(k):
+                grown[j, :] = mate_half + rho[j]
+            A3, h3, drift3, index3 = occlusion_family(
+                p, q, vq, nb, grown, nb_v, theta_star, mode, moving_target, size_margin
+            )
+            A2 = np.concatenate((A2, A3))
+            h2 = np.concatenate((h2, h3))
+            drift2 = np.concatenate((drift2, drift3))
+            index2 = np.concatenate((index2, -(index3 + 1)))
     n1, n2 = h1.shape[0], h2.shape[0]
     n = n1 + n2
     sizes = np.empty(N_FAMILIES + 1, np.int64)

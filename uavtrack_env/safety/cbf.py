@@ -109,7 +109,11 @@ class SafetyContext:
     """The car's row is the frustum over its box (`barrier_rows.target_row`), which climbing
     always keeps; for a stale car (`onboard.car_box`). False: the box barrier."""
     neighbour_ids: tuple[int, ...] | None = None
-    """Optional agent ids of `neighbours`, used only to name rows ("uav:<id>")."""
+    """Optional agent ids of `neighbours`: they name the rows ("uav:<id>") and, with `own_id`,
+    rank the team-mates in a fallback (`SafetyFilter.yield_by_rank`)."""
+    own_id: int | None = None
+    """Optional agent id of this UAV, among the ids of `neighbour_ids`
+    (`SafetyFilter.yield_by_rank`)."""
     velocity: np.ndarray | None = None
     """(3,) own actual global velocity (IMU); needed only by second-order rows (``lag_tau``)."""
     neighbour_velocities: np.ndarray | None = None
@@ -203,6 +207,15 @@ class SafetyContext:
                 f"neighbour_ids has {len(self.neighbour_ids)} entries for "
                 f"{len(self.neighbours)} neighbours"
             )
+        if self.own_id is not None:
+            if not isinstance(self.own_id, int | np.integer) or isinstance(self.own_id, bool):
+                raise ValueError(f"own_id must be an int agent id or None, got {self.own_id!r}")
+            if self.neighbour_ids is not None and self.own_id in self.neighbour_ids:
+                raise ValueError(
+                    f"own_id {self.own_id} is also in neighbour_ids {self.neighbour_ids}: a UAV "
+                    "is not its own team-mate"
+                )
+            put(self, "own_id", int(self.own_id))
 
 
 _CONTEXT_DEFAULTS = {
@@ -236,7 +249,8 @@ class CBFRows(NamedTuple):
     kind: np.ndarray
     """(k,) int family index into `KIND_NAMES`."""
     index: np.ndarray
-    """(k,) index of the neighbour/obstacle the row refers to (0 for target and floor)."""
+    """(k,) index of the neighbour/obstacle the row refers to (0 for target and floor; -(j + 1)
+    for the occlusion row of team-mate j)."""
 
     @property
     def hard(self) -> np.ndarray:
@@ -249,7 +263,8 @@ class CBFRows(NamedTuple):
         return len(self.b)
 
     def name(self, r: int, neighbour_ids=None) -> str:
-        """Name of row r, e.g. 'uav:2', 'obstacle:5', 'occlusion:5', 'connect:1', 'target'."""
+        """Name of row r, e.g. 'uav:2', 'obstacle:5', 'occlusion:5', 'occlusion:uav:2',
+        'connect:1', 'target'."""
         return row_name(int(self.kind[r]), int(self.index[r]), neighbour_ids)
 
     def names(self, neighbour_ids=None) -> list[str]:
@@ -259,9 +274,13 @@ class CBFRows(NamedTuple):
 
 def row_name(kind: int, index: int, neighbour_ids=None) -> str:
     """Name of a row of family ``kind`` for neighbour/obstacle ``index`` (`CBFRows.name`); the
-    UAV and connectivity rows name the team-mate's id in ``neighbour_ids``, if given."""
+    UAV and connectivity rows, and the occlusion rows of team-mates ('occlusion:uav:<id>'),
+    name the team-mate's id in ``neighbour_ids``, if given."""
     if kind in (TARGET, FLOOR):
         return KIND_NAMES[kind]
+    if kind == OCCLUSION and index < 0:
+        mate = -index - 1
+        return f"occlusion:uav:{mate if neighbour_ids is None else neighbour_ids[mate]}"
     if neighbour_ids is not None and kind in (UAV, CONNECT):
         index = neighbour_ids[index]
     return f"{KIND_NAMES[kind]}:{index}"
@@ -391,7 +410,7 @@ class RowBuilder:
             cbf.alpha_v,
             cbf.obstacle_clearance,
             cbf.z_min,
-            car and self.occlusion and len(oc) > 0,  # the occlusion rows (45), `occlusion_family`
+            car and self.occlusion,  # the occlusion rows (45), `occlusion_family`
             self._theta_star,
             self._point_mode,
             cbf.occlusion_model == "moving-target",
@@ -399,6 +418,8 @@ class RowBuilder:
             self._gammas,
             self._margins,
             _radii(ctx) if self.lag_tau == 0.0 else _NO_CAP,
+            np.zeros_like(nb) if ctx.neighbour_velocities is None else ctx.neighbour_velocities,
+            cbf.team_mate_radius,
         )
         b, h, gamma, drift, margin = floats
         kind, index = ints
@@ -428,7 +449,7 @@ class RowBuilder:
         cbf = self.cbf
         row_p = np.array(
             (cbf.d_s, cbf.r_s, cbf.r_c, cbf.alpha_v, cbf.obstacle_clearance, cbf.z_min,
-             self._theta_star, self._point_mode)
+             self._theta_star, self._point_mode, cbf.team_mate_radius)
         )  # fmt: skip
         flags = np.array(
             (self.obstacle_model == "box", self.target_as_obstacle, self.occlusion,

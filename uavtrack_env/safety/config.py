@@ -52,6 +52,11 @@ class CBFConfig:
     ('edges'; wide boxes close to the UAV are not points either)."""
     occlusion_size_margin: bool = False
     """Not in the paper: widen theta* by the box's angular radius asin(r_xy / |p_o - p|)."""
+    team_mate_radius: float | None = 0.0
+    """Not in the paper: the team-mates occlude the car too, in the occlusion rows (45) each a
+    box of this half size (m) around its believed position, grown by its message ball and
+    moving at its believed velocity (`barrier_rows.all_rows`). 0: they do not (the paper, whose
+    rows cover the obstacles only); None: the world's UAV radius (`resolve`)."""
 
     def __post_init__(self) -> None:
         f = _Fields(self)
@@ -74,18 +79,21 @@ class CBFConfig:
         f.choice("occlusion_model", ("paper", "moving-target"))
         f.choice("occlusion_point", POINT_MODES)
         f.flag("occlusion_size_margin")
+        f.number("team_mate_radius", lo=0, none_means="the world's UAV radius")
         if self.resolved:
             self._check_ranges()
 
     @property
     def resolved(self) -> bool:
-        """R_s, R_c and D_s are all set (`resolve` fills them from the world)."""
-        return None not in (self.r_s, self.r_c, self.d_s)
+        """R_s, R_c, D_s and the team-mates' radius are all set (`resolve` fills them from the
+        world)."""
+        return None not in (self.r_s, self.r_c, self.d_s, self.team_mate_radius)
 
-    def resolve(self, r_s: float = 2.0, r_c: float = 20.0) -> CBFConfig:
-        """This config with R_s, R_c (and D_s) set: the world's collision range ``r_s`` and link
-        range ``r_c`` where unset (the defaults are Table IV's). A set R_s below the world's or a
-        set R_c above it raises: the controller may be stricter than the world, never looser."""
+    def resolve(self, r_s: float = 2.0, r_c: float = 20.0, uav_radius: float = 0.25) -> CBFConfig:
+        """This config with R_s, R_c (and D_s) and the team-mates' radius set: the world's
+        collision range ``r_s``, link range ``r_c`` and UAV radius where unset (the defaults are
+        Table IV's and `EnvConfig.uav_radius`'s). A set R_s below the world's or a set R_c above
+        it raises: the controller may be stricter than the world, never looser."""
         if self.r_s is not None and self.r_s < r_s:
             raise ValueError(f"cbf.r_s = {self.r_s} m is below the world's collision range {r_s} m")
         if self.r_c is not None and self.r_c > r_c:
@@ -93,7 +101,8 @@ class CBFConfig:
         r_s = r_s if self.r_s is None else self.r_s
         r_c = r_c if self.r_c is None else self.r_c
         d_s = r_c if self.d_s is None else self.d_s
-        return dataclasses.replace(self, r_s=r_s, r_c=r_c, d_s=d_s)
+        radius = uav_radius if self.team_mate_radius is None else self.team_mate_radius
+        return dataclasses.replace(self, r_s=r_s, r_c=r_c, d_s=d_s, team_mate_radius=radius)
 
     def _check_ranges(self) -> None:
         _require(

@@ -123,9 +123,10 @@ def occluder_points(
 
 @numba.njit(cache=True)
 def occlusion_family(
-    p, q, vq, centers, half, theta_star, mode, moving_target, size_margin
+    p, q, vq, centers, half, velocity, theta_star, mode, moving_target, size_margin
 ):  # pragma: no cover (compiled)
-    """Occlusion rows (41)-(45) of the boxes ``centers`` +- ``half``: (A, h, drift, index).
+    """Occlusion rows (41)-(45) of the boxes ``centers`` +- ``half`` moving at ``velocity``
+    (zeros: the paper's static obstacles): (A, h, drift, index).
 
     A row exists for box j when its occluder point p_o^j (`occluder_points`, ``mode`` an index of
     `POINT_MODES`) is in N_oi = {||p_o^j - p|| <= ||n||}, n = q - p (36); boxes whose nearest
@@ -138,6 +139,8 @@ def occlusion_family(
     * paper (43): n-dot = 0 and d-dot = -V, so A = -(1/sin) dx/dd and b = gamma_o h (45).
     * ``moving_target``: n-dot = V_q - V, so A = -(1/sin)(dx/dd + dx/dn) and the target term
       ``drift = -(1/sin) dx/dn . V_q`` goes to b.
+    * a moving box (a team-mate, not in the paper): d-dot = V_j - V adds
+      ``-(1/sin) dx/dd . V_j`` to the drift.
 
     ``size_margin`` (not in the paper): h = theta - theta* - beta, beta = asin(r_j / b_j) the
     box's angular radius (r_j its horizontal half-diagonal, b_j the horizontal distance to its
@@ -178,6 +181,9 @@ def occlusion_family(
             drift[k] = -k_n * (d @ vq) + k_nn * nvq
         else:
             A[k] = k_d * d - k_n * n
+        vj = velocity[j]
+        if vj[0] != 0.0 or vj[1] != 0.0 or vj[2] != 0.0:
+            drift[k] += k_d * (d @ vj) - k_n * (n @ vj)
         if size_margin:
             b2 = max(d[0] * d[0] + d[1] * d[1], 1e-18)
             ratio = math.hypot(hf[0], hf[1]) / math.sqrt(b2)

@@ -35,7 +35,11 @@ Layers, each tried only if the previous one cannot give an answer:
    (`SafetyFilter.climb_over_car`): beside the box the box row's gradient is horizontal, so it
    and an obstacle's row can leave no command, while climbing always raises the frustum. In that
    certificate the rows of team-mates known only within a reachable ball (lost messages) share
-   the car's priority. certify never raises on a valid input and never returns NaN.
+   the car's priority. A fallback that gave up a pair row its UAV answers for (of two UAVs, the
+   one closing the gap faster; `pairs_answered`) is certified again with the pair rows it does
+   not answer for given up first (`SafetyFilter.yield_by_rank`), so that two UAVs pinned by
+   others do not both give up the row between them. certify never raises on a valid input and
+   never returns NaN.
 
 Speed bound ``||V|| <= alpha_v`` (a norm, not linear): after each QP, if ``||V|| > alpha_v`` a
 tangent cut ``(V/||V||)^T v <= alpha_v`` (valid for the ball) is added and the QP re-solved, at most
@@ -68,7 +72,9 @@ from uavtrack_env.geometry import cam_to_world_vec
 from uavtrack_env.safety import daqp_native
 from uavtrack_env.safety.cbf import (
     CONNECT,
+    FLOOR,
     KIND_NAMES,
+    OBSTACLE,
     OCCLUSION,
     TARGET,
     UAV,
@@ -370,7 +376,52 @@ class SafetyFilter:
             own, alone = _excess(rows, done[0], ctx.yaw), _excess(rows, plain[0], ctx.yaw)
             if (own > np.maximum(alone, 0.0) + self.options.verify_tol).any():
                 done = plain
-        return self.climb_over_car(u, ctx, done)
+        return self.climb_over_car(u, ctx, self.yield_by_rank(u, ctx, done))
+
+    def yield_by_rank(
+        self,
+        u: np.ndarray,
+        ctx: SafetyContext,
+        done: tuple[np.ndarray, ShieldReport],
+        layer_kind: np.ndarray | None = None,
+    ) -> tuple[np.ndarray, ShieldReport]:
+        """``done`` = a fallback certificate of ``u`` on ``done[1].rows`` (layers by
+        ``layer_kind``, default the rows' kinds). If it gives up a pair row this UAV answers
+        for (`pairs_answered`), the certificate again with those rows at the team-mates'
+        priority and the other pair rows given up with the car's row, before them. It replaces
+        ``done`` where it gives up less of the rows this UAV answers for and breaks no obstacle
+        or floor row more.
+
+        The tie-break for crowds: the fallback QP slacks every pair row at one weight, so two
+        UAVs each pinned by others can both give up the row between them, and that pair is
+        then covered by neither. Ranked, one UAV of each pair keeps the row, or gives up as
+        little of it as its other hard rows allow."""
+        rows = done[1].rows
+        if done[1].status != "fallback" or rows is None:
+            return done
+        kind = rows.kind if layer_kind is None else layer_kind
+        pair = np.flatnonzero(rows.kind == UAV)
+        answers = pairs_answered(ctx, rows.index[pair])
+        if answers is None or answers.all():
+            return done
+        mine, theirs = pair[answers], pair[~answers]
+        tol = self.options.verify_tol
+        excess = _excess(rows, done[0], ctx.yaw)
+        if not (excess[mine] > tol).any():
+            return done
+        ranked = kind.copy()
+        ranked[mine], ranked[theirs] = UAV, TARGET
+        again = self._certify(
+            u, ctx.yaw, ctx.velocity, rows, ctx.neighbour_ids, time.perf_counter(), ranked
+        )
+        after = _excess(rows, again[0], ctx.yaw)
+        fixed = (rows.kind == OBSTACLE) | (rows.kind == FLOOR)
+        if (
+            np.maximum(after[mine], 0.0).sum() >= np.maximum(excess[mine], 0.0).sum()
+            or (after[fixed] > np.maximum(excess[fixed], 0.0) + tol).any()
+        ):
+            return done
+        return again
 
     def climb_over_car(
         self, u: np.ndarray, ctx: SafetyContext, done: tuple[np.ndarray, ShieldReport]
@@ -386,15 +437,16 @@ class SafetyFilter:
         within a reachable ball (a lost message: the worst case over the ball) are given up
         together with the car's frustum, not before it: a team-mate pressing from such a ball
         would otherwise push the UAV into the car (`baselines.shield_adversary`'s
-        block-and-press)."""
+        block-and-press), then ranked as `yield_by_rank` ranks them."""
         if not done[1].gave_car_up or ctx.target_frustum:
             return done
         ctx = replace(ctx, target_frustum=True)
         rows = self.row_builder(ctx, make_way=False)
-        return self._certify(
-            u, ctx.yaw, ctx.velocity, rows, ctx.neighbour_ids, time.perf_counter(),
-            _stale_team_mates_with_car(rows, ctx.neighbour_radius),
-        )  # fmt: skip
+        kind = _stale_team_mates_with_car(rows, ctx.neighbour_radius)
+        done = self._certify(
+            u, ctx.yaw, ctx.velocity, rows, ctx.neighbour_ids, time.perf_counter(), kind
+        )
+        return self.yield_by_rank(u, ctx, done, kind)
 
     def certify_trusted(
         self, u: np.ndarray, ctx: SafetyContext, rows: CBFRows
@@ -659,6 +711,31 @@ def _excess(rows: CBFRows, u: np.ndarray, yaw: float) -> np.ndarray:
     V = cam_to_world_vec(np.asarray(u[:3], float), yaw)
     excess = (rows.A @ V - rows.b) / np.maximum(np.linalg.norm(rows.A, axis=1), 1e-12)
     return np.where(rows.kind < CONNECT, excess, -np.inf)
+
+
+def pairs_answered(ctx: SafetyContext, mates: np.ndarray) -> np.ndarray | None:
+    """Of the pairs with team-mates ``mates`` (indices into ``ctx.neighbours``), those this
+    UAV answers for in a fallback (`SafetyFilter.yield_by_rank`); None without the ids.
+
+    The UAV that closes the gap faster (its velocity towards the other; the team-mate's from
+    ``ctx.neighbour_velocities``) answers for the pair: its braking opens the gap, while the
+    one ahead can only run and may itself be pinned ahead. Without velocities, or within
+    1 mm/s, the lower id answers. Both UAVs of a pair compute the same split from what they
+    know of each other."""
+    if ctx.own_id is None or ctx.neighbour_ids is None:
+        return None
+    answers = np.asarray(ctx.neighbour_ids, dtype=np.int64)[mates] > ctx.own_id
+    if ctx.velocity is None or ctx.neighbour_velocities is None:
+        return answers
+    e = ctx.neighbours[mates] - ctx.position
+    e /= np.maximum(np.linalg.norm(e, axis=1, keepdims=True), 1e-12)
+    own = e @ ctx.velocity
+    their = -np.einsum("ij,ij->i", e, ctx.neighbour_velocities[mates])
+    return np.where(np.abs(own - their) > _CLOSING_TIE, own > their, answers)
+
+
+_CLOSING_TIE = 1e-3
+"""Closing speeds (m/s) of the two UAVs of a pair this close are a tie (`pairs_answered`)."""
 
 
 def _stale_team_mates_with_car(rows: CBFRows, radius: np.ndarray | None) -> np.ndarray | None:
