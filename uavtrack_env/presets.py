@@ -6,8 +6,7 @@ gains, QP options, margins, the viewpoint layer) is one `ExpertConfig`. `ExpertP
 
 * ``"tuned"``: the UAVs' default. The tuned planner (LQR terminal weight, the car's turn rate in
   u_d, the shield's rows on the plan's first stages), occlusion rows on the boxes' edges with the
-  car's estimated velocity and on the team-mates, second-order rows under the velocity-lag
-  model, the viewpoint layer.
+  car's estimated velocity, second-order rows under the velocity-lag model, the viewpoint layer.
 * ``"paper"``: the paper's equations exactly: NMPC (18)-(19), occlusion rows (38)-(45) on the box
   centres with n-dot = 0 (43), first-order CBF rows (integrator (3)), the constant x2*.
 * ``"paper-planner"``: the paper's NMPC (18)-(19) with the tuned preset's rows and viewpoint.
@@ -179,9 +178,7 @@ def _parse(kind: Any, text: str, path: str) -> Any:
         raise ValueError(f"--set {path}={text}: cannot read it as {kind}: {exc}") from exc
 
 
-_TUNED_ROWS = CBFConfig(
-    occlusion_model="moving-target", occlusion_point="edges", team_mate_radius=None
-)
+_TUNED_ROWS = CBFConfig(occlusion_model="moving-target", occlusion_point="edges")
 
 PRESETS: dict[str, ExpertConfig] = {
     "tuned": ExpertConfig(

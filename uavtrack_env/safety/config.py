@@ -55,8 +55,9 @@ class CBFConfig:
     team_mate_radius: float | None = 0.0
     """Not in the paper: the team-mates occlude the car too, in the occlusion rows (45) each a
     box of this half size (m) around its believed position, grown by its message ball and
-    moving at its believed velocity (`barrier_rows.all_rows`). 0: they do not (the paper, whose
-    rows cover the obstacles only); None: the world's UAV radius (`resolve`)."""
+    moving at its believed velocity (`barrier_rows.all_rows`). 0 (every preset): they do not, as
+    in the paper, whose rows cover the obstacles only; None: the world's UAV radius
+    (`resolve`). Opt-in: docs/safety.md measures what it costs in crowds."""
 
     def __post_init__(self) -> None:
         f = _Fields(self)
