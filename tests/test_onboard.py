@@ -264,6 +264,33 @@ def test_the_trusted_context_builds_the_rows_of_a_checked_one():
     env.close()
 
 
+@pytest.mark.parametrize("dynamics", ["integrator", "lag"])
+def test_team_mate_occlusion_rows_of_the_pass_equal_the_row_builders(dynamics):
+    """With ``cbf.team_mate_radius=None`` the team-mates occlude with the world's UAV radius:
+    the rows the compiled pass builds (team-mate occlusion rows included) equal the row
+    builder's on each UAV's context, bit for bit."""
+    from uavtrack_env.presets import expert_config
+
+    env = uavtrack_v0.parallel_env(**{**WORLD, "uav_radius": 0.3, "dynamics": {"model": dynamics}})
+    shield = CBFShield(env, expert_config("tuned", cbf={"team_mate_radius": None}))
+    _, infos = shield.reset(seed=4)
+    rng = np.random.default_rng(5)
+    mate_rows = 0
+    for _ in range(60):
+        for agent in infos:
+            onboard = shield.onboard[agent]
+            assert onboard.cbf.team_mate_radius == 0.3
+            mine, theirs = onboard.rows(), onboard.filter.rows(onboard.context())
+            for name in ("A", "b", "h", "kind", "index"):
+                np.testing.assert_array_equal(getattr(mine, name), getattr(theirs, name))
+            mate_rows += int(((mine.kind == 5) & (mine.index < 0)).sum())
+        if not env.agents:
+            break
+        infos = shield.step({a: rng.uniform(-1, 1, 4) for a in env.agents})[4]
+    assert mate_rows > 0
+    env.close()
+
+
 def test_bank_trackers_equal_plain_filterpy_trackers_on_an_episode():
     """The trackers of a team's `TrackerBank` and plain-filterpy trackers (the preset's
     `UKFConfig` with ``vectorized=False``), fed the same infos of an episode with detector
