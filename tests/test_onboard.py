@@ -232,62 +232,43 @@ def test_take_is_update_then_belief(accel_bound):
 
 
 @pytest.mark.filterwarnings("ignore:the shield certifies")
-def test_the_trusted_context_builds_the_rows_of_a_checked_one():
+@pytest.mark.parametrize(("dynamics", "mate_radius"), [("lag", 0.0), ("lag", None),
+                                                       ("integrator", None)])  # fmt: skip
+def test_the_trusted_context_builds_the_rows_of_a_checked_one(dynamics, mate_radius):
     """The onboard stack builds its SafetyContext without re-checking the env's arrays; the
-    same values through SafetyContext's checks give bit-identical rows."""
+    same values through SafetyContext's checks give bit-identical rows to the compiled pass's.
+    With ``cbf.team_mate_radius=None`` the team-mates occlude with the world's UAV radius, and
+    the pass builds their occlusion rows as the row builder does."""
     import dataclasses
 
+    from uavtrack_env.presets import expert_config
     from uavtrack_env.safety import SafetyContext
 
-    env = uavtrack_v0.parallel_env(**WORLD)
-    shield = CBFShield(env)
+    env = uavtrack_v0.parallel_env(**{**WORLD, "uav_radius": 0.3, "dynamics": {"model": dynamics}})
+    shield = CBFShield(env, expert_config("tuned", cbf={"team_mate_radius": mate_radius}))
     _, infos = shield.reset(seed=3)
     rng = np.random.default_rng(1)
-    compared = 0
+    compared, mate_rows = 0, 0
     for _ in range(40):
         for agent in infos:
             onboard = shield.onboard[agent]
+            assert onboard.cbf.team_mate_radius == (0.3 if mate_radius is None else 0.0)
             ctx = onboard.context()
             checked = SafetyContext(
                 **{f.name: getattr(ctx, f.name) for f in dataclasses.fields(ctx)}
             )
             mine, theirs = onboard.rows(), onboard.filter.rows(checked)
-            np.testing.assert_array_equal(mine.A, theirs.A)
-            np.testing.assert_array_equal(mine.b, theirs.b)
-            compared += ctx.target_position is not None
-        if not env.agents:
-            break
-        infos = shield.step({a: rng.uniform(-1, 1, 4) for a in env.agents})[4]
-    assert compared > 20
-    with pytest.raises(TypeError, match="no fields"):
-        SafetyContext.trusted(position=np.zeros(3), yaw=0.0, speed=1.0)
-    env.close()
-
-
-@pytest.mark.parametrize("dynamics", ["integrator", "lag"])
-def test_team_mate_occlusion_rows_of_the_pass_equal_the_row_builders(dynamics):
-    """With ``cbf.team_mate_radius=None`` the team-mates occlude with the world's UAV radius:
-    the rows the compiled pass builds (team-mate occlusion rows included) equal the row
-    builder's on each UAV's context, bit for bit."""
-    from uavtrack_env.presets import expert_config
-
-    env = uavtrack_v0.parallel_env(**{**WORLD, "uav_radius": 0.3, "dynamics": {"model": dynamics}})
-    shield = CBFShield(env, expert_config("tuned", cbf={"team_mate_radius": None}))
-    _, infos = shield.reset(seed=4)
-    rng = np.random.default_rng(5)
-    mate_rows = 0
-    for _ in range(60):
-        for agent in infos:
-            onboard = shield.onboard[agent]
-            assert onboard.cbf.team_mate_radius == 0.3
-            mine, theirs = onboard.rows(), onboard.filter.rows(onboard.context())
             for name in ("A", "b", "h", "kind", "index"):
                 np.testing.assert_array_equal(getattr(mine, name), getattr(theirs, name))
+            compared += ctx.target_position is not None
             mate_rows += int(((mine.kind == 5) & (mine.index < 0)).sum())
         if not env.agents:
             break
         infos = shield.step({a: rng.uniform(-1, 1, 4) for a in env.agents})[4]
-    assert mate_rows > 0
+    assert compared > 20
+    assert (mate_rows > 0) == (mate_radius is None)
+    with pytest.raises(TypeError, match="no fields"):
+        SafetyContext.trusted(position=np.zeros(3), yaw=0.0, speed=1.0)
     env.close()
 
 
