@@ -270,17 +270,23 @@ def axis_occl_h(p, center, half, n, theta_star):
 
 def edges_occl_h(p, center, half, n, theta_star):
     """Independent h of the 'edges' occluder: the least theta over the box's 12 edges, each
-    minimised numerically, minus theta*."""
+    minimised numerically, minus theta*; with the sight line through the box, minus the least
+    theta over the edges of its outline seen from p (one of the edge's two faces towards p)."""
     corners = [center + half * (2 * np.array(s) - 1) for s in np.ndindex(2, 2, 2)]
+    inside = _segment_hits_box(p, p + n, center, half)
     best = np.inf
     for a in corners:
         for b in corners:
             if np.count_nonzero(a != b) != 1:  # an edge joins corners differing on one axis
                 continue
+            faces = [(k, np.sign(a[k] - center[k])) for k in range(3) if a[k] == b[k]]
+            towards = [sg * (p[k] - center[k]) > half[k] for k, sg in faces]
+            if inside and sum(towards) != 1:
+                continue
             seg = lambda t, a=a, b=b: occl_h(p, a + t * (b - a), n, 0.0)  # noqa: E731
             res = minimize_scalar(seg, bounds=(0, 1), method="bounded", options={"xatol": 1e-12})
             best = min(best, seg(0.0), seg(1.0), seg(res.x))
-    return best - theta_star
+    return (-best if inside else best) - theta_star
 
 
 BOX_OCCLUDERS = {
@@ -464,6 +470,39 @@ def test_edges_occluder_sees_a_cube_whose_axis_point_misses():
     edges = occluder_points(p, center[None], half[None], q, "edges")[0]
     assert occl_h(p, axis, q - p, ts) > 0.0  # 34.5 deg: the axis barrier sees no danger
     assert occl_h(p, edges, q - p, ts) < -np.radians(10)  # 13.4 deg, deep inside the cone
+
+
+@pytest.mark.parametrize("seed", range(8))
+def test_edges_h_falls_as_the_sight_line_goes_into_the_box(seed):
+    """Sweeping the UAV sideways so that its sight line crosses a box: the 'edges' h is
+    continuous, below -theta* exactly while the line passes through the box, and least where
+    the line is deepest in it (theta is minus the angle to the box's outline there)."""
+    rng = np.random.default_rng(900 + seed)
+    center, half = rng.uniform(-1, 1, 3) + [6.0, 0.0, 2.0], rng.uniform(0.3, 1.0, 3)
+    q = np.array([14.0, 0.0, 0.75]) + rng.uniform(-1, 1, 3) * [1, 1, 0]
+    cbf = CBFConfig(occlusion_point="edges").resolve()
+    ts = cbf.theta_star
+    aim = center + rng.uniform(-0.3, 0.3, 3) * half  # a point of the box the sweep passes
+    hs, hits = [], []
+    for y in np.linspace(-4.0, 4.0, 801):
+        p = q + (aim - q) * 2.0 + [0.0, y, 0.0]  # sight line from p passes aim at y = 0
+        ctx = SafetyContext(
+            position=p, yaw=0.0, target_position=q, target_heading=0.0,
+            obstacle_centers=center[None], obstacle_half_extents=half[None],
+        )  # fmt: skip
+        rows = build_rows(ctx, cbf)
+        occl = rows.h[rows.kind == OCCLUSION]
+        hs.append(occl[0] if len(occl) else np.nan)
+        hits.append(_segment_hits_box(p, q, center, half))
+    hs, hits = np.array(hs), np.array(hits)
+    assert hits.any() and not hits.all() and not np.isnan(hs[hits]).any()
+    assert (hs[hits] < -ts).all()
+    seen = ~np.isnan(hs)
+    assert (hs[seen & ~hits] >= -ts - 1e-9).all()
+    assert np.abs(np.diff(hs[seen])).max() < 0.05  # continuous across the box's outline
+    least, through = np.nanargmin(hs), np.flatnonzero(hits)
+    assert through[0] < least < through[-1]  # inside the box, not on its outline
+    assert hs[least] < min(hs[through[0]], hs[through[-1]]) - 1e-3
 
 
 @pytest.mark.parametrize("frustum", [False, True])

@@ -531,3 +531,36 @@ def test_a_team_mate_crossing_the_sight_line_is_kept_out_of_the_cone(radius):
         assert least >= -5e-3  # lets h dip O(dt^2) per step (5e-3 rad = 0.3 deg)
     else:
         assert least < -0.2  # it crossed the cone: the rows are what keeps it out
+
+
+@pytest.mark.parametrize("depth", [0.0, 0.3, 0.6])
+def test_a_sight_line_through_an_obstacle_is_steered_out(depth):
+    """A UAV hovering 15 m from a parked car sees it through a box (the sight line ``depth``
+    of the box's half width from its middle). With the tuned 'edges' rows, certifying a zero
+    command moves the UAV until its sight line passes beside the box, without a fallback."""
+    cbf = CBFConfig(occlusion_point="edges").resolve()
+    f = SafetyFilter(cbf=cbf)
+    p, q = np.array([0.0, 0.0, 3.0]), np.array([15.0, 0.0, 0.75])
+    half = np.array([0.6, 0.6, 1.5])
+    center = p + 0.45 * (q - p) + [0.0, depth * half[1], 0.0]
+    center[2] = half[2]  # standing on the ground
+
+    def through(p):
+        d = q - p
+        with np.errstate(divide="ignore"):
+            t1, t2 = (center - half - p) / d, (center + half - p) / d
+        lo, hi = np.minimum(t1, t2).max(), np.maximum(t1, t2).min()
+        return lo <= hi and hi >= 0.0 and lo <= 1.0
+
+    assert through(p)
+    steps = 0
+    while through(p) and steps < int(6.0 / DT):
+        ctx = SafetyContext(
+            position=p, yaw=0.0, target_position=q, target_heading=0.0,
+            obstacle_centers=center[None], obstacle_half_extents=half[None],
+        )  # fmt: skip
+        u, rep = f.certify(np.zeros(4), ctx)
+        assert rep.status != "fallback", rep
+        p = p + DT * global_v(u, 0.0)
+        steps += 1
+    assert not through(p), f"still behind the box after {steps * DT:.1f} s"

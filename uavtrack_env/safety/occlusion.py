@@ -35,8 +35,36 @@ _EDGE_START, _EDGE_AXIS = _edge_geometry()
 
 
 @numba.njit(cache=True)
-def _occluder_point(p, n, c, half, mode):  # pragma: no cover (compiled)
-    """p_o of one box (`occluder_points`); ``n`` is the unit sight line."""
+def _pierces(p, n, reach, c, half):  # pragma: no cover (compiled)
+    """Whether the sight line p + t n, 0 <= t <= reach (``n`` unit), passes through the box."""
+    lo, hi = 0.0, reach
+    for a in range(3):
+        if abs(n[a]) < 1e-12:
+            if abs(p[a] - c[a]) > half[a]:
+                return False
+            continue
+        t1 = (c[a] - half[a] - p[a]) / n[a]
+        t2 = (c[a] + half[a] - p[a]) / n[a]
+        lo, hi = max(lo, min(t1, t2)), min(hi, max(t1, t2))
+    return lo <= hi
+
+
+@numba.njit(cache=True)
+def _on_outline(p, c, half, k):  # pragma: no cover (compiled)
+    """Whether edge k is on the box's outline seen from p: of the two faces it joins, exactly
+    one faces p."""
+    facing = 0
+    for a in range(3):
+        if a != _EDGE_AXIS[k]:
+            s = _EDGE_START[k, a]
+            facing += s * (p[a] - c[a]) > half[a]
+    return facing == 1
+
+
+@numba.njit(cache=True)
+def _occluder_point(p, n, c, half, mode, inside=False):  # pragma: no cover (compiled)
+    """p_o of one box (`occluder_points`); ``n`` is the unit sight line. ``inside`` (a sight
+    line through the box, 'edges' only): the least-angle point of the box's outline."""
     out = np.empty(3)
     if mode == 0:
         out[:] = c
@@ -66,7 +94,13 @@ def _occluder_point(p, n, c, half, mode):  # pragma: no cover (compiled)
     # with a = w.n, b = e.n, c0 = |w|^2, c1 = w.e; its only stationary point is
     # t = (a c1 - b c0) / (b c1 - a), so the largest cos is there (clipped) or at an end.
     best_cos = -np.inf
+    outline = 0
+    if inside:
+        for k in range(12):
+            outline += _on_outline(p, c, half, k)
     for k in range(12):
+        if outline > 0 and not _on_outline(p, c, half, k):
+            continue
         ax = _EDGE_AXIS[k]
         s0 = c[0] + _EDGE_START[k, 0] * half[0]
         s1 = c[1] + _EDGE_START[k, 1] * half[1]
@@ -97,10 +131,12 @@ def _occluder_point(p, n, c, half, mode):  # pragma: no cover (compiled)
 @numba.njit(cache=True)
 def _points(p, centers, half, q, mode):  # pragma: no cover (compiled)
     n = q - p
-    n = n / max(math.sqrt(n @ n), 1e-12)
+    reach = math.sqrt(n @ n)
+    n = n / max(reach, 1e-12)
     out = np.empty_like(centers)
     for j in range(centers.shape[0]):
-        out[j] = _occluder_point(p, n, centers[j], half[j], mode)
+        inside = mode == 2 and _pierces(p, n, reach, centers[j], half[j])
+        out[j] = _occluder_point(p, n, centers[j], half[j], mode, inside)
     return out
 
 
@@ -113,7 +149,9 @@ def occluder_points(
     theta is then the minimum over that set. Its gradient at the minimiser is the gradient of
     theta at that fixed point (Danskin), so the occlusion rows stay exact. The 'edges' minimum is
     the least angle of the whole box whenever the sight line misses the box (the angle is
-    quasi-convex on each face plane, so a face's minimum lies on its boundary).
+    quasi-convex on each face plane, so a face's minimum lies on its boundary). Where the line
+    goes through the box, 'edges' takes the least-angle point of the box's outline seen from p
+    (edges joining a face towards p and one away from it): the way out of the box.
     """
     centers = np.asarray(centers, float).reshape(-1, 3)
     half = np.asarray(half, float).reshape(-1, 3)
@@ -146,6 +184,10 @@ def occlusion_family(
     box's angular radius (r_j its horizontal half-diagonal, b_j the horizontal distance to its
     axis, clipped at 0.99); A gains d beta/dp = r w / (b^3 sqrt(1 - r^2/b^2)), w the horizontal
     part of d. theta = 0 or pi makes 1/sin singular and is clamped.
+
+    'edges' with the sight line through the box (not in the paper): theta is minus the angle to
+    the box's outline, so h falls the deeper the line goes and its gradient points the line out
+    (the unsigned least angle to the edges grows again inside the box, towards its middle).
     """
     m = centers.shape[0]
     A = np.empty((m, 3))
@@ -165,7 +207,8 @@ def occlusion_family(
         dc = c - p
         if math.sqrt(dc @ dc) - math.sqrt(hf @ hf) > reach:
             continue
-        d = _occluder_point(p, unit, c, hf, mode) - p
+        inside = mode == 2 and _pierces(p, unit, reach, c, hf)
+        d = _occluder_point(p, unit, c, hf, mode, inside) - p
         nd2 = d @ d
         if not (nd2 <= nn2 and nd2 > 1e-18):
             continue
@@ -184,6 +227,10 @@ def occlusion_family(
         vj = velocity[j]
         if vj[0] != 0.0 or vj[1] != 0.0 or vj[2] != 0.0:
             drift[k] += k_d * (d @ vj) - k_n * (n @ vj)
+        if inside:  # theta = -(angle to the outline): h and its rate change sign
+            hj = -math.acos(x) - theta_star
+            A[k] = -A[k]
+            drift[k] = -drift[k]
         if size_margin:
             b2 = max(d[0] * d[0] + d[1] * d[1], 1e-18)
             ratio = math.hypot(hf[0], hf[1]) / math.sqrt(b2)
