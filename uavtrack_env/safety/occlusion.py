@@ -151,7 +151,7 @@ def occluder_points(
     the least angle of the whole box whenever the sight line misses the box (the angle is
     quasi-convex on each face plane, so a face's minimum lies on its boundary). Where the line
     goes through the box, 'edges' takes the least-angle point of the box's outline seen from p
-    (edges joining a face towards p and one away from it): the way out of the box.
+    (the edges of which exactly one of the two faces they join faces p): the way out of the box.
     """
     centers = np.asarray(centers, float).reshape(-1, 3)
     half = np.asarray(half, float).reshape(-1, 3)
