@@ -10,7 +10,7 @@ from scipy.optimize import minimize_scalar
 
 from tests.conftest import car_h, car_inside, growing_car_case
 from uavtrack_env.config import EnvConfig
-from uavtrack_env.geometry import cam_to_world
+from uavtrack_env.geometry import cam_to_world, segment_hits_boxes
 from uavtrack_env.safety import SafetyContext, SafetyFilter, build_rows, check_eq28
 from uavtrack_env.safety.barrier_rows import target_row
 from uavtrack_env.safety.cbf import (
@@ -273,7 +273,7 @@ def edges_occl_h(p, center, half, n, theta_star):
     minimised numerically, minus theta*; with the sight line through the box, minus the least
     theta over the edges of its outline seen from p (one of the edge's two faces towards p)."""
     corners = [center + half * (2 * np.array(s) - 1) for s in np.ndindex(2, 2, 2)]
-    inside = _segment_hits_box(p, p + n, center, half)
+    inside = segment_hits_boxes(p, p + n, center[None], half[None])[0]
     best = np.inf
     for a in corners:
         for b in corners:
@@ -446,15 +446,6 @@ def test_context_rejects_bad_input(kwargs):
         SafetyContext(**{**base, **kwargs})
 
 
-def _segment_hits_box(a, b, center, half) -> bool:
-    """Slab test: does the segment a -> b pass through the axis-aligned box?"""
-    d = b - a
-    with np.errstate(divide="ignore"):
-        t1, t2 = (center - half - a) / d, (center + half - a) / d
-    lo, hi = np.minimum(t1, t2).max(), np.maximum(t1, t2).min()
-    return bool(lo <= hi and hi >= 0.0 and lo <= 1.0)
-
-
 def test_edges_occluder_sees_a_cube_whose_axis_point_misses():
     """Scenario B0, UAV3 at 18.7 s with cbf.occlusion_model="moving-target":
     a 1 m cube beside and below the UAV hides the car's lower far corner. Its axis point lies
@@ -464,7 +455,9 @@ def test_edges_occluder_sees_a_cube_whose_axis_point_misses():
     q = np.array([8.173, -2.587, 0.75])  # car centre
     center, half = np.array([5.0, -4.0, 0.5]), np.array([0.5, 0.5, 0.5])
     corner = np.array([9.77, -3.75, 0.15])  # a ray-cast sample point of the car
-    assert _segment_hits_box(p, corner, center, half)  # the cube hides part of the car
+    assert segment_hits_boxes(p, corner, center[None], half[None])[
+        0
+    ]  # the cube hides part of the car
     ts = CBFConfig().theta_star
     axis = occluder_points(p, center[None], half[None], q, "axis")[0]
     edges = occluder_points(p, center[None], half[None], q, "edges")[0]
@@ -493,7 +486,7 @@ def test_edges_h_falls_as_the_sight_line_goes_into_the_box(seed):
         rows = build_rows(ctx, cbf)
         occl = rows.h[rows.kind == OCCLUSION]
         hs.append(occl[0] if len(occl) else np.nan)
-        hits.append(_segment_hits_box(p, q, center, half))
+        hits.append(segment_hits_boxes(p, q, center[None], half[None])[0])
     hs, hits = np.array(hs), np.array(hits)
     assert hits.any() and not hits.all() and not np.isnan(hs[hits]).any()
     assert (hs[hits] < -ts).all()

@@ -9,7 +9,7 @@ import pytest
 from scipy.optimize import linprog, minimize
 
 from uavtrack_env.config import DT
-from uavtrack_env.geometry import cam_to_world_vec, world_to_cam_vec
+from uavtrack_env.geometry import cam_to_world_vec, segment_hits_boxes, world_to_cam_vec
 from uavtrack_env.safety import SOLVERS, SafetyContext, SafetyFilter, build_rows
 from uavtrack_env.safety.config import CBFConfig
 from uavtrack_env.safety.shield import pairs_answered
@@ -546,11 +546,7 @@ def test_a_sight_line_through_an_obstacle_is_steered_out(depth):
     center[2] = half[2]  # standing on the ground
 
     def through(p):
-        d = q - p
-        with np.errstate(divide="ignore"):
-            t1, t2 = (center - half - p) / d, (center + half - p) / d
-        lo, hi = np.minimum(t1, t2).max(), np.maximum(t1, t2).min()
-        return lo <= hi and hi >= 0.0 and lo <= 1.0
+        return segment_hits_boxes(p, q, center[None], half[None])[0]
 
     assert through(p)
     steps = 0

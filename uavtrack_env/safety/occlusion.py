@@ -62,13 +62,14 @@ def _on_outline(p, c, half, k):  # pragma: no cover (compiled)
 
 
 @numba.njit(cache=True)
-def _occluder_point(p, n, c, half, mode, inside=False):  # pragma: no cover (compiled)
-    """p_o of one box (`occluder_points`); ``n`` is the unit sight line. ``inside`` (a sight
-    line through the box, 'edges' only): the least-angle point of the box's outline."""
+def _occluder_point(p, n, reach, c, half, mode):  # pragma: no cover (compiled)
+    """(p_o of one box (`occluder_points`), whether the sight line goes through the box);
+    ``n`` is the unit sight line, ``reach`` the distance to the car. Through the box, 'edges'
+    takes the least-angle point of the box's outline (`_on_outline`)."""
     out = np.empty(3)
     if mode == 0:
         out[:] = c
-        return out
+        return out, False
     if mode == 1:
         # the vertical axis: with t = z - p_z, cos = (a + t n_z) / sqrt(b^2 + t^2), a the
         # horizontal part of (c - p).n and b the horizontal distance; stationary at n_z b^2 / a
@@ -89,17 +90,16 @@ def _occluder_point(p, n, c, half, mode, inside=False):  # pragma: no cover (com
             if cos > best_cos:
                 best_cos, best_t = cos, t
         out[0], out[1], out[2] = c[0], c[1], p[2] + best_t
-        return out
+        return out, False
     # edges p + w + t e, t in [0, L] (e a unit axis): cos = (a + b t) / sqrt(c0 + 2 c1 t + t^2)
     # with a = w.n, b = e.n, c0 = |w|^2, c1 = w.e; its only stationary point is
     # t = (a c1 - b c0) / (b c1 - a), so the largest cos is there (clipped) or at an end.
+    inside = _pierces(p, n, reach, c, half)
+    # from a UAV inside the box no face faces it and every edge stays a candidate
+    outline = inside and not (np.abs(p - c) <= half).all()
     best_cos = -np.inf
-    outline = 0
-    if inside:
-        for k in range(12):
-            outline += _on_outline(p, c, half, k)
     for k in range(12):
-        if outline > 0 and not _on_outline(p, c, half, k):
+        if outline and not _on_outline(p, c, half, k):
             continue
         ax = _EDGE_AXIS[k]
         s0 = c[0] + _EDGE_START[k, 0] * half[0]
@@ -125,7 +125,7 @@ def _occluder_point(p, n, c, half, mode, inside=False):  # pragma: no cover (com
                 best_cos = cos
                 out[0], out[1], out[2] = s0, s1, s2
                 out[ax] += t
-    return out
+    return out, inside
 
 
 @numba.njit(cache=True)
@@ -135,8 +135,7 @@ def _points(p, centers, half, q, mode):  # pragma: no cover (compiled)
     n = n / max(reach, 1e-12)
     out = np.empty_like(centers)
     for j in range(centers.shape[0]):
-        inside = mode == 2 and _pierces(p, n, reach, centers[j], half[j])
-        out[j] = _occluder_point(p, n, centers[j], half[j], mode, inside)
+        out[j] = _occluder_point(p, n, reach, centers[j], half[j], mode)[0]
     return out
 
 
@@ -207,15 +206,16 @@ def occlusion_family(
         dc = c - p
         if math.sqrt(dc @ dc) - math.sqrt(hf @ hf) > reach:
             continue
-        inside = mode == 2 and _pierces(p, unit, reach, c, hf)
-        d = _occluder_point(p, unit, c, hf, mode, inside) - p
+        point, inside = _occluder_point(p, unit, reach, c, hf, mode)
+        d = point - p
         nd2 = d @ d
         if not (nd2 <= nn2 and nd2 > 1e-18):
             continue
         inv_dn = 1.0 / math.sqrt(nd2 * nn2)
         x = min(max((d @ n) * inv_dn, -1.0), 1.0)
         inv_sin = 1.0 / math.sqrt(max(1.0 - x * x, 1e-12))
-        hj = math.acos(x) - theta_star
+        theta = math.acos(x)
+        hj = (-theta if inside else theta) - theta_star
         k_n = inv_sin * inv_dn  # A = -k_n n + k_d d for the paper's model
         k_d = inv_sin * x / nd2
         if moving_target:
@@ -227,8 +227,7 @@ def occlusion_family(
         vj = velocity[j]
         if vj[0] != 0.0 or vj[1] != 0.0 or vj[2] != 0.0:
             drift[k] += k_d * (d @ vj) - k_n * (n @ vj)
-        if inside:  # theta = -(angle to the outline): h and its rate change sign
-            hj = -math.acos(x) - theta_star
+        if inside:  # theta = -(angle to the outline): its rate changes sign too
             A[k] = -A[k]
             drift[k] = -drift[k]
         if size_margin:
