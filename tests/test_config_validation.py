@@ -351,6 +351,13 @@ BAD = [
     case(ShieldOptions, "verify_tol", -1.0, V, rf"verify_tol must be {NONNEG}"),
     case(ShieldOptions, "lag_tau", INF, V, rf"lag_tau must be {NONNEG}"),
     case(ShieldOptions, "accel_bound", -1.0, V, rf"accel_bound must be {NONNEG}"),
+    case(
+        ShieldOptions,
+        "occlusion_urgency",
+        100.0,
+        V,
+        r"occlusion_urgency must be a finite number in \[1, 100\), got 100",
+    ),
     # ------------------------------------------------------------------ ShieldMargins
     case(ShieldMargins, "r_s_margin", NAN, V, rf"r_s_margin must be {NONNEG}, got nan"),
     case(ShieldMargins, "r_c_margin", -0.05, V, rf"r_c_margin must be {NONNEG}"),

@@ -421,6 +421,47 @@ def test_connectivity_is_kept_where_it_conflicts_only_with_occlusion():
     np.testing.assert_allclose(v[1:], [0.5, 0.0], atol=1e-6)
 
 
+@pytest.mark.parametrize("native", [True, False])
+@pytest.mark.parametrize("urgency", [10.0, 1.0])
+def test_the_occlusion_row_nearest_to_an_occlusion_is_kept_first(native, urgency):
+    """Two occlusion rows that no command meets together: one whose sight line is about to touch
+    its occluder (h just above -theta*), one far from it (h > 0). The nominal pulls towards the
+    second. With urgency the first is kept and the second takes the slack; with equal weights
+    (``occlusion_urgency=1``) the L1 slack is the same either way and the nominal wins."""
+    from uavtrack_env.safety.cbf import OCCLUSION, CBFRows
+
+    f = SafetyFilter(occlusion_urgency=urgency)
+    if not native:
+        f._native = None
+    theta_star = f.cbf.theta_star
+    two = np.ones(2)
+    rows = CBFRows(
+        A=np.array([[1.0, 0.0, 0.0], [-1.0, 0.0, 0.0]]), b=np.array([-0.5, -0.5]),
+        h=np.array([-theta_star + 0.02, 0.8]), gamma=0.1 * two, drift=0.0 * two,
+        margin=0.0 * two, kind=np.full(2, OCCLUSION), index=np.array([6, 4]),
+    )  # fmt: skip
+    out, rep = f.certify_pose(cam_u([1.0, 0.3, 0.0], 0.0), 0.0, None, rows)
+    assert rep.status == "relaxed"
+    urgent_kept = urgency > 1
+    slacked = "occlusion:4" if urgent_kept else "occlusion:6"
+    assert list(rep.slack_per_row) == [slacked]
+    assert rep.slack_per_row[slacked] == pytest.approx(1.0, abs=1e-6)
+    V = global_v(out, 0.0)
+    np.testing.assert_allclose(V, [-0.5 if urgent_kept else 0.5, 0.3, 0.0], atol=1e-6)
+
+
+def test_urgency_grows_from_one_at_the_cone_to_its_bound_at_the_occluder():
+    from uavtrack_env.safety.cbf import CONNECT, OCCLUSION
+
+    f = SafetyFilter(occlusion_urgency=10.0)
+    t = f.cbf.theta_star
+    h = np.array([0.3, 0.0, -0.5 * t, -t, -2.0 * t, -t])
+    kind = np.array([OCCLUSION] * 5 + [CONNECT])
+    np.testing.assert_allclose(f.urgency(kind, h), [1.0, 1.0, 5.5, 10.0, 10.0, 1.0])
+    with pytest.raises(ValueError, match="occlusion_urgency"):
+        SafetyFilter(occlusion_urgency=0.5)
+
+
 def squeezed(**kw):
     """A UAV 1.9 m from a team-mate on each side along x (inside R_s = 2 m): each pair row
     asks it to move away from its team-mate, so no command keeps both."""

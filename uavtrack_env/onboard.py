@@ -549,7 +549,7 @@ def certify_team(agents: Sequence[OnboardAgent], u: np.ndarray) -> Certificates:
             data, lows, begin, end = out.data[at], out.lows[at], out.start[at], out.start[at + 1]
             known = out.belief_ints[at, 0].tolist()
         ids = [a.neighbour_ids(k) for a, k in zip(agents, known, strict=True)]
-        packed = (out.A, out.floats[0], out.ints[0], begin, end)
+        packed = (out.A, out.floats[0], out.ints[0], out.floats[1], begin, end)
         done = shield.certify_many(
             u, data[:, 3], data[:, 4:7], lambda j: out.rows(js[j]), ids, packed
         )

@@ -145,6 +145,12 @@ class ShieldOptions:
     camera axis, so the plant never clips its acceleration and the second-order rows hold as
     written; the rows that keep the UAV from obstacles, the floor and the other UAVs also keep
     its braking distance (`RowBuilder`). 0: no bound."""
+    occlusion_urgency: float = 10.0
+    """Not in the paper: an occlusion row's slack weight in the relaxed QPs grows linearly from
+    ``soft_penalty`` at h = 0 to this multiple of it at h = -theta* (the sight line touching
+    the occluder, eq. (37)), so that of occlusion rows that conflict the one nearest to an
+    actual occlusion is kept (`SafetyFilter.urgency`). 1: every row alike. Below 100, so that
+    connectivity still outweighs occlusion."""
     make_way: bool = True
     """Not in the paper: a team-mate within the clearance of the car's box counts as anywhere
     within its reachable ball grown by the climb it needs to leave the box
@@ -166,6 +172,7 @@ class ShieldOptions:
         f.number("verify_tol", lo=0)
         f.number("lag_tau", lo=0)
         f.number("accel_bound", lo=0)
+        f.number("occlusion_urgency", lo=1, hi=100, hi_open=True)
 
 
 @dataclass
@@ -344,6 +351,14 @@ class SafetyFilter:
         those closest to active first (smallest b); rows the speed bound implies are dropped."""
         return nearest_camera_rows(rows.A, rows.b, yaw, self.alpha_v, k)
 
+    def urgency(self, kind: np.ndarray, h: np.ndarray) -> np.ndarray:
+        """Each row's factor on its slack weight in the relaxed QPs: 1, and for an occlusion row
+        from 1 at h = 0 up to `ShieldOptions.occlusion_urgency` at h = -theta* (37), where the
+        sight line touches the occluder and beyond."""
+        depth = np.clip(-np.asarray(h, float) / self.cbf.theta_star, 0.0, 1.0)
+        factor = 1.0 + (self.options.occlusion_urgency - 1.0) * depth
+        return np.where(np.asarray(kind) == OCCLUSION, factor, 1.0)
+
     def certify(
         self, u_nominal: np.ndarray, ctx: SafetyContext, rows: CBFRows | None = None
     ) -> tuple[np.ndarray, ShieldReport]:
@@ -479,7 +494,7 @@ class SafetyFilter:
         """`certify_pose` of m UAVs' commands ``u`` (m, 4) with their yaws (m,), actual
         velocities (m, 3), rows (a list, or UAV j's by ``rows(j)``) and row-naming ids: on
         'daqp-direct' one compiled call (`qp_layers.certify_many`). ``packed``: (A, b, kind,
-        begin, end), arrays in which UAV j's rows are ``[begin[j]:end[j]]`` (required when
+        h, begin, end), arrays in which UAV j's rows are ``[begin[j]:end[j]]`` (required when
         ``rows`` is a callable)."""
         m = len(neighbour_ids)
         row = rows if callable(rows) else rows.__getitem__
@@ -497,12 +512,14 @@ class SafetyFilter:
                 ends.append(ends[-1] + len(r.b))
             packed = (
                 np.concatenate([r.A for r in rows]), np.concatenate([r.b for r in rows]),
-                np.concatenate([r.kind for r in rows]), np.array(ends[:-1], np.int64),
-                np.array(ends[1:], np.int64),
+                np.concatenate([r.kind for r in rows]), np.concatenate([r.h for r in rows]),
+                np.array(ends[:-1], np.int64), np.array(ends[1:], np.int64),
             )  # fmt: skip
+        A, b, kind, h, begin, end = packed
         changed, outs = certify_many(
-            u, yaws, velocities, *packed, self._lb3, self._ub3, *self._native
-        )
+            u, yaws, velocities, A, b, kind, self.urgency(kind, h), begin, end, self._lb3,
+            self._ub3, *self._native,
+        )  # fmt: skip
         share = (time.perf_counter() - t0) * 1e6 / max(m, 1)
         return Certificates(self, u, changed, outs, row, neighbour_ids, share)
 
@@ -528,10 +545,11 @@ class SafetyFilter:
                 "nominal", False, 0.0, 0.0, [], time_us=(time.perf_counter() - t0) * 1e6,
                 rows=rows, neighbour_ids=ids,
             )  # fmt: skip
+        urgency = self.urgency(kind, rows.h)
         if self._native is not None:
             out = certify_changed(
-                u, yaw, velocity, has_velocity, rows.A, rows.b, kind, self._lb3, self._ub3,
-                *self._native,
+                u, yaw, velocity, has_velocity, rows.A, rows.b, kind, urgency, self._lb3,
+                self._ub3, *self._native,
             )  # fmt: skip
             return out[:4], self._changed_report(out.tolist(), u, rows, ids, t0)
         stage, v, w, An, bn, (kinds, kept), (lb, ub) = triage(
@@ -542,7 +560,9 @@ class SafetyFilter:
         status, solver, calls = "optimal", "closed-form", 0
         if stage == 2:
             try:
-                v, status, solver, calls = self._solve_layers(v, An, bn, kinds, lb, ub)
+                v, status, solver, calls = self._solve_layers(
+                    v, An, bn, kinds, lb, ub, urgency[kept]
+                )
             except Exception:  # never let a numerical failure take the UAV down: brake
                 v, status, solver, calls = np.zeros(3), "fallback", "brake", 0
         v0, v1, v2 = v.tolist()
@@ -556,33 +576,36 @@ class SafetyFilter:
         )
 
     # ----------------------------------------------------------------- layers
-    def _solve_layers(self, v_hat, An, bn, kinds, lb3, ub3):
+    def _solve_layers(self, v_hat, An, bn, kinds, lb3, ub3, urgency=None):
         """Hard QP, relaxed QP, then the fallbacks by row priority, then brake (module
-        docstring): each fallback keeps the rows of the known geometry hard while it can."""
+        docstring): each fallback keeps the rows of the known geometry hard while it can.
+        ``urgency``: the rows' factors on their occlusion slack weights (`urgency`; None: 1)."""
         calls = 0
-        for status, weights in self._layers(kinds):
+        urgency = np.ones(len(kinds)) if urgency is None else urgency
+        for status, weights in self._layers(kinds, urgency):
             v, n = self._solve(v_hat, An, bn, weights, lb3, ub3)
             calls += n
             if v is not None:
                 return v, status, self.solver, calls
         return np.zeros(3), "fallback", "brake", calls
 
-    def _layers(self, kinds: np.ndarray):
+    def _layers(self, kinds: np.ndarray, urgency: np.ndarray):
         """(status, slack weight per row; 0 = hard) of each QP layer, in the order tried.
 
         Priorities: the floor and the static obstacles (exact geometry) > the other UAVs
         (messages, with their reachable sets) > the car (an estimate) > connectivity > occlusion.
-        The first relaxation slacks the occlusion rows only; connectivity is slacked only when
-        it conflicts with the collision and altitude rows, and from then on outweighs
-        occlusion 100:1. A fallback gives up the lowest-priority hard family that is left.
+        The first relaxation slacks the occlusion rows only, each weighted by its ``urgency``;
+        connectivity is slacked only when it conflicts with the collision and altitude rows,
+        and from then on outweighs occlusion at least 100:``occlusion_urgency``. A fallback
+        gives up the lowest-priority hard family that is left.
         """
         yield "optimal", np.zeros(len(kinds))
         opt = self.options
         occlusion, connect = kinds == OCCLUSION, kinds == CONNECT
         if occlusion.any():
-            yield "relaxed", np.where(occlusion, opt.soft_penalty, 0.0)
+            yield "relaxed", np.where(occlusion, opt.soft_penalty * urgency, 0.0)
         base = np.where(
-            connect, opt.soft_penalty, np.where(occlusion, 1e-2 * opt.soft_penalty, 0.0)
+            connect, opt.soft_penalty, np.where(occlusion, 1e-2 * opt.soft_penalty * urgency, 0.0)
         )
         if connect.any():
             yield "relaxed", base
