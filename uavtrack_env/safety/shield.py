@@ -20,8 +20,10 @@ Layers, each tried only if the previous one cannot give an answer:
    if only a bound is violated, its closed-form projection is returned when it is feasible.
 2. hard QP: every row hard ("optimal").
 3. relaxed QPs ("relaxed"): first every row hard but the occlusion rows, which take slack under
-   an L1 penalty; if that is infeasible too, the connectivity rows take slack as well, weighted
-   100 times the occlusion rows. Connectivity is therefore given up only where it conflicts with
+   an L1 penalty, weighted the more the nearer a row's sight line is to its occluder
+   (`SafetyFilter.urgency`), so that of two conflicting occlusion rows the one about to occlude
+   is kept; if that is infeasible too, the connectivity rows take slack as well, weighted
+   at least 10 times the occlusion rows (100 / `ShieldOptions.occlusion_urgency`). Connectivity is therefore given up only where it conflicts with
    the collision and altitude rows, never for occlusion. Each runs only after the layer before it
    was infeasible, so a family's slack is zero whenever a solution without it exists (up to
    the exactness of the L1 penalty, `soft_penalty` far above the rows' multipliers).
