@@ -357,9 +357,11 @@ class SafetyFilter:
         """Each row's factor on its slack weight in the relaxed QPs: 1, and for an occlusion row
         from 1 at h = 0 up to `ShieldOptions.occlusion_urgency` at h = -theta* (37), where the
         sight line touches the occluder and beyond."""
-        depth = np.clip(-np.asarray(h, float) / self.cbf.theta_star, 0.0, 1.0)
-        factor = 1.0 + (self.options.occlusion_urgency - 1.0) * depth
-        return np.where(np.asarray(kind) == OCCLUSION, factor, 1.0)
+        occlusion = np.asarray(kind) == OCCLUSION
+        depth = np.clip(-np.asarray(h, float)[occlusion] / self.cbf.theta_star, 0.0, 1.0)
+        out = np.ones(occlusion.shape)
+        out[occlusion] = 1.0 + (self.options.occlusion_urgency - 1.0) * depth
+        return out
 
     def certify(
         self, u_nominal: np.ndarray, ctx: SafetyContext, rows: CBFRows | None = None
