@@ -22,11 +22,12 @@ Layers, each tried only if the previous one cannot give an answer:
 3. relaxed QPs ("relaxed"): first every row hard but the occlusion rows, which take slack under
    an L1 penalty, weighted the more the nearer a row's sight line is to its occluder
    (`SafetyFilter.urgency`), so that of two conflicting occlusion rows the one about to occlude
-   is kept; if that is infeasible too, the connectivity rows take slack as well, weighted
-   at least 10 times the occlusion rows (100 / `ShieldOptions.occlusion_urgency`). Connectivity is therefore given up only where it conflicts with
-   the collision and altitude rows, never for occlusion. Each runs only after the layer before it
-   was infeasible, so a family's slack is zero whenever a solution without it exists (up to
-   the exactness of the L1 penalty, `soft_penalty` far above the rows' multipliers).
+   is kept; if that is infeasible too, the connectivity rows take slack as well, weighted at
+   least 10 times the occlusion rows (100 / `ShieldOptions.occlusion_urgency`). Connectivity
+   is therefore given up only where it conflicts with the collision and altitude rows, never
+   for occlusion. Each runs only after the layer before it was infeasible, so a family's slack
+   is zero whenever a solution without it exists (up to the exactness of the L1 penalty,
+   `soft_penalty` far above the rows' multipliers).
 4. fallbacks by priority: the rows whose geometry is known are never traded for rows built on
    an estimate. The car's row (a UKF estimate) is slacked first (weight `hard_penalty` / 100),
    then the other UAVs' rows (`hard_penalty`) with the floor and obstacle rows still hard, then
