@@ -19,7 +19,9 @@ violation counts under ``calls``) and, with ``--evaluate``, ``metrics.json`` (ev
 episodes in the schema of ``baselines/evaluate.py``; a resumed run appends). The console shows a
 learning-curve line every ``--log-every`` agent-steps. Step counts are agent-steps (SB3's
 ``num_timesteps``: rows x vector steps); ``--timesteps`` stops at the first vector step that
-reaches it.
+reaches it. A UAV whose episode ended keeps its row in the absorbing state until its world
+resets: those rows count towards ``--timesteps`` but not towards ``training_violations``'
+``agent_steps``, which counts the steps of UAVs still flying.
 
 The world (`train.world.TrainingWorld`, shared with `train.rllib_ppo`): seeded random worlds, UAVs
 started up to ``--start-offset`` m off formation, and the env's RL defaults: r = exp(-c) (c the
@@ -107,7 +109,13 @@ class Args:
         default=(), metadata={"help": "FIELD=VALUE overrides of the preset (repeatable)"}
     )
     timesteps: int = field(default=200_000, metadata={"help": "agent-steps to train (this call)"})
-    seed: int = field(default=0, metadata={"help": "seed of torch, numpy and the worlds"})
+    seed: int = field(
+        default=0,
+        metadata={
+            "help": "seed of torch, numpy and the worlds; world k starts from seed + k (SB3's "
+            "convention), so runs meant to be independent need seeds at least --n-envs apart"
+        },
+    )
     out: Path | None = field(default=None, metadata={"help": "output dir (default: --resume)"})
     resume: Path | None = field(
         default=None, metadata={"help": "continue the run in DIR from its last checkpoint"}
@@ -466,7 +474,7 @@ def train(args: Args):
         "to_timesteps": int(model.num_timesteps),
         "train_seconds": elapsed,
         "agent_steps_per_s": (model.num_timesteps - start) / elapsed,
-        "training_violations": log.totals,  # agent-steps of this call
+        "training_violations": log.totals,  # steps of flying UAVs in this call
     }
     calls = [*previous.get("calls", []), call]
     saved = {k: (str(v) if isinstance(v, Path) else v) for k, v in dataclasses.asdict(args).items()}
