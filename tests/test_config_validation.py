@@ -358,6 +358,7 @@ BAD = [
         V,
         r"occlusion_urgency must be a finite number in \[1, 100\), got 100",
     ),
+    case(ShieldOptions, "occlusion_leverage", 0.0, V, r"occlusion_leverage must be .*> 0"),
     # ------------------------------------------------------------------ ShieldMargins
     case(ShieldMargins, "r_s_margin", NAN, V, rf"r_s_margin must be {NONNEG}, got nan"),
     case(ShieldMargins, "r_c_margin", -0.05, V, rf"r_c_margin must be {NONNEG}"),

@@ -457,9 +457,59 @@ def test_urgency_grows_from_one_at_the_cone_to_its_bound_at_the_occluder():
     t = f.cbf.theta_star
     h = np.array([0.3, 0.0, -0.5 * t, -t, -2.0 * t, -t])
     kind = np.array([OCCLUSION] * 5 + [CONNECT])
-    np.testing.assert_allclose(f.urgency(kind, h), [1.0, 1.0, 5.5, 10.0, 10.0, 1.0])
+    unit = np.tile([0.0, 0.6, 0.8], (6, 1))
+    np.testing.assert_allclose(f.urgency(kind, h, unit), [1.0, 1.0, 5.5, 10.0, 10.0, 1.0])
     with pytest.raises(ValueError, match="occlusion_urgency"):
         SafetyFilter(occlusion_urgency=0.5)
+
+
+@pytest.mark.parametrize("length", [1.0, 2.0, None])
+def test_an_occlusion_rows_weight_scales_with_how_fast_a_velocity_turns_its_angle(length):
+    """The leverage factor is L |grad h| clipped to [1e-3, 1], on occlusion rows only."""
+    from uavtrack_env.safety.cbf import CONNECT, OCCLUSION
+
+    f = SafetyFilter(occlusion_urgency=10.0, occlusion_leverage=length)
+    t = f.cbf.theta_star
+    grad = np.array([0.03, 0.3, 0.7, 4.0, 0.0, 0.03])
+    A = grad[:, None] * np.array([0.6, 0.0, -0.8])
+    h = np.array([-t, -t, 0.0, 0.0, -t, -t])
+    kind = np.array([OCCLUSION] * 5 + [CONNECT])
+    urgency = np.array([10.0, 10.0, 1.0, 1.0, 10.0, 1.0])
+    leverage = np.ones(6) if length is None else np.clip(length * grad, 1e-3, 1.0)
+    leverage[-1] = 1.0
+    np.testing.assert_allclose(f.urgency(kind, h, A), urgency * leverage)
+    assert (f.urgency(kind, h, A) > 0).all()  # a zero gradient keeps the row soft
+
+
+@pytest.mark.parametrize("native", [True, False])
+@pytest.mark.parametrize("length", [1.0, None])
+def test_an_occlusion_row_no_velocity_can_keep_does_not_take_the_command(native, length):
+    """Two occlusion rows equally near their occluders that no command meets together. The
+    first's angle barely moves with the UAV (|grad h| = 0.03: occluder near the car, both far)
+    and the car's motion drives it in faster than any velocity can answer (v_x <= -20 m/s). The
+    second's occluder is near (|grad h| = 0.5, v_x >= -0.5). The nominal pulls towards the first.
+    Priced by leverage, the second is kept and the first takes the slack it must take anyway;
+    priced in m/s (``occlusion_leverage=None``) the hopeless row takes the command."""
+    from uavtrack_env.safety.cbf import OCCLUSION, CBFRows
+
+    f = SafetyFilter(occlusion_leverage=length)
+    if not native:
+        f._native = None
+    two = np.ones(2)
+    rows = CBFRows(
+        A=np.array([[0.03, 0.0, 0.0], [-0.5, 0.0, 0.0]]), b=np.array([-0.6, 0.25]),
+        h=np.full(2, -f.cbf.theta_star + 0.05), gamma=0.1 * two, drift=0.0 * two,
+        margin=0.0 * two, kind=np.full(2, OCCLUSION), index=np.array([8, 17]),
+    )  # fmt: skip
+    out, rep = f.certify_pose(cam_u([-1.5, 0.3, 0.0], 0.0), 0.0, None, rows)
+    assert rep.status == "relaxed"
+    V = global_v(out, 0.0)
+    if length is not None:
+        assert list(rep.slack_per_row) == ["occlusion:8"]
+        np.testing.assert_allclose(V, [-0.5, 0.3, 0.0], atol=1e-6)
+    else:
+        assert set(rep.slack_per_row) == {"occlusion:8", "occlusion:17"}
+        np.testing.assert_allclose(V, [-1.5, 0.3, 0.0], atol=1e-4)  # slack_regularization
 
 
 def squeezed(**kw):

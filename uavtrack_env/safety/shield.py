@@ -154,6 +154,13 @@ class ShieldOptions:
     the occluder, eq. (37)), so that of occlusion rows that conflict the one nearest to an
     actual occlusion is kept (`SafetyFilter.urgency`). 1: every row alike. Below 100, so that
     connectivity still outweighs occlusion."""
+    occlusion_leverage: float | None = 1.0
+    """Not in the paper: a length L (m). An occlusion row's slack weight is also multiplied by
+    ``L |grad h|`` clipped to [1e-3, 1], |grad h| the row's gradient before the rows are
+    normalised (rad/s of its angle per m/s): its slack is priced in the rate of the angle, so a
+    row whose angle a velocity barely turns (its occluder near the car, both far from the UAV)
+    cannot take the command away from rows it can keep (`SafetyFilter.urgency`). None: priced
+    in m/s like the other rows."""
     make_way: bool = True
     """Not in the paper: a team-mate within the clearance of the car's box counts as anywhere
     within its reachable ball grown by the climb it needs to leave the box
@@ -176,6 +183,7 @@ class ShieldOptions:
         f.number("lag_tau", lo=0)
         f.number("accel_bound", lo=0)
         f.number("occlusion_urgency", lo=1, hi=100, hi_open=True)
+        f.number("occlusion_leverage", lo=0, lo_open=True, none_means="priced in m/s")
 
 
 @dataclass
@@ -354,14 +362,19 @@ class SafetyFilter:
         those closest to active first (smallest b); rows the speed bound implies are dropped."""
         return nearest_camera_rows(rows.A, rows.b, yaw, self.alpha_v, k)
 
-    def urgency(self, kind: np.ndarray, h: np.ndarray) -> np.ndarray:
+    def urgency(self, kind: np.ndarray, h: np.ndarray, A: np.ndarray) -> np.ndarray:
         """Each row's factor on its slack weight in the relaxed QPs: 1, and for an occlusion row
         from 1 at h = 0 up to `ShieldOptions.occlusion_urgency` at h = -theta* (37), where the
-        sight line touches the occluder and beyond."""
+        sight line touches the occluder and beyond, times its leverage ``L |A|`` clipped to
+        [1e-3, 1] (`ShieldOptions.occlusion_leverage`; ``A`` the rows' gradients)."""
         occlusion = np.asarray(kind) == OCCLUSION
         depth = np.clip(-np.asarray(h, float)[occlusion] / self.cbf.theta_star, 0.0, 1.0)
         out = np.ones(occlusion.shape)
         out[occlusion] = 1.0 + (self.options.occlusion_urgency - 1.0) * depth
+        length = self.options.occlusion_leverage
+        if length is not None:
+            grad = np.linalg.norm(np.asarray(A, float)[occlusion], axis=1)
+            out[occlusion] *= np.clip(length * grad, 1e-3, 1.0)  # > 0: the row stays soft
         return out
 
     def certify(
@@ -522,7 +535,7 @@ class SafetyFilter:
             )  # fmt: skip
         A, b, kind, h, begin, end = packed
         changed, outs = certify_many(
-            u, yaws, velocities, A, b, kind, self.urgency(kind, h), begin, end, self._lb3,
+            u, yaws, velocities, A, b, kind, self.urgency(kind, h, A), begin, end, self._lb3,
             self._ub3, *self._native,
         )  # fmt: skip
         share = (time.perf_counter() - t0) * 1e6 / max(m, 1)
@@ -550,7 +563,7 @@ class SafetyFilter:
                 "nominal", False, 0.0, 0.0, [], time_us=(time.perf_counter() - t0) * 1e6,
                 rows=rows, neighbour_ids=ids,
             )  # fmt: skip
-        urgency = self.urgency(kind, rows.h)
+        urgency = self.urgency(kind, rows.h, rows.A)
         if self._native is not None:
             out = certify_changed(
                 u, yaw, velocity, has_velocity, rows.A, rows.b, kind, urgency, self._lb3,
