@@ -465,20 +465,26 @@ def test_urgency_grows_from_one_at_the_cone_to_its_bound_at_the_occluder():
 
 @pytest.mark.parametrize("length", [1.0, 2.0, None])
 def test_an_occlusion_rows_weight_scales_with_how_fast_a_velocity_turns_its_angle(length):
-    """The leverage factor is L |grad h| clipped to [1e-3, 1], on occlusion rows only."""
+    """The leverage factor is L |grad h| clipped to [1e-3, 1], on occlusion rows only, without
+    overflow for a gradient beyond float range squared (the UAV at its occluder)."""
+    import warnings
+
     from uavtrack_env.safety.cbf import CONNECT, OCCLUSION
 
     f = SafetyFilter(occlusion_urgency=10.0, occlusion_leverage=length)
     t = f.cbf.theta_star
-    grad = np.array([0.03, 0.3, 0.7, 4.0, 0.0, 0.03])
+    grad = np.array([0.03, 0.3, 0.7, 4.0, 0.0, 1e200, 0.03])
     A = grad[:, None] * np.array([0.6, 0.0, -0.8])
-    h = np.array([-t, -t, 0.0, 0.0, -t, -t])
-    kind = np.array([OCCLUSION] * 5 + [CONNECT])
-    urgency = np.array([10.0, 10.0, 1.0, 1.0, 10.0, 1.0])
-    leverage = np.ones(6) if length is None else np.clip(length * grad, 1e-3, 1.0)
+    h = np.array([-t, -t, 0.0, 0.0, -t, 0.0, -t])
+    kind = np.array([OCCLUSION] * 6 + [CONNECT])
+    urgency = np.array([10.0, 10.0, 1.0, 1.0, 10.0, 1.0, 1.0])
+    leverage = np.ones(7) if length is None else np.clip(length * grad, 1e-3, 1.0)
     leverage[-1] = 1.0
-    np.testing.assert_allclose(f.urgency(kind, h, A), urgency * leverage)
-    assert (f.urgency(kind, h, A) > 0).all()  # a zero gradient keeps the row soft
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        got = f.urgency(kind, h, A)
+    np.testing.assert_allclose(got, urgency * leverage)
+    assert (got > 0).all()  # a zero gradient keeps the row soft
 
 
 @pytest.mark.parametrize("native", [True, False])

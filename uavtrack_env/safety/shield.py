@@ -20,10 +20,11 @@ Layers, each tried only if the previous one cannot give an answer:
    if only a bound is violated, its closed-form projection is returned when it is feasible.
 2. hard QP: every row hard ("optimal").
 3. relaxed QPs ("relaxed"): first every row hard but the occlusion rows, which take slack under
-   an L1 penalty, weighted the more the nearer a row's sight line is to its occluder
-   (`SafetyFilter.urgency`), so that of two conflicting occlusion rows the one about to occlude
-   is kept; if that is infeasible too, the connectivity rows take slack as well, weighted at
-   least 10 times the occlusion rows (100 / `ShieldOptions.occlusion_urgency`). Connectivity
+   an L1 penalty, weighted the more the nearer a row's sight line is to its occluder and priced
+   in the rate of its angle (`SafetyFilter.urgency`), so that of two conflicting occlusion rows
+   the one about to occlude is kept, and a row no velocity can answer does not take the
+   command from one it can; if that is infeasible too, the connectivity rows take slack as
+   well, weighted at least 10 times the occlusion rows (100 / `occlusion_urgency`). Connectivity
    is therefore given up only where it conflicts with the collision and altitude rows, never
    for occlusion. Each runs only after the layer before it was infeasible, so a family's slack
    is zero whenever a solution without it exists (up to the exactness of the L1 penalty,
@@ -373,8 +374,14 @@ class SafetyFilter:
         out[occlusion] = 1.0 + (self.options.occlusion_urgency - 1.0) * depth
         length = self.options.occlusion_leverage
         if length is not None:
-            grad = np.linalg.norm(np.asarray(A, float)[occlusion], axis=1)
-            out[occlusion] *= np.clip(length * grad, 1e-3, 1.0)  # > 0: the row stays soft
+            a = np.abs(np.asarray(A, float)[occlusion])
+            leverage = np.ones(len(a))
+            # a component alone reaching 1 / L caps the factor; the norm of the others cannot
+            # overflow (gradients grow without bound as the UAV nears its occluder)
+            below = length * a.max(axis=1, initial=0.0) < 1.0
+            grad = np.sqrt((a[below] ** 2).sum(axis=1))
+            leverage[below] = np.clip(length * grad, 1e-3, 1.0)  # > 0: the row stays soft
+            out[occlusion] *= leverage
         return out
 
     def certify(
