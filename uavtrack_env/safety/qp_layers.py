@@ -29,6 +29,26 @@ LAYER_STATUS = ("optimal", "relaxed", "fallback", "brake")
 
 
 @numba.njit(cache=True)
+def occlusion_factors(kind, h, A, theta_star, most, length):  # pragma: no cover (compiled)
+    """`SafetyFilter.urgency`: each row's factor on its slack weight, 1 but for the occlusion
+    rows: their urgency (1 at h = 0 to ``most`` at h = -theta*) times their leverage
+    ``length |A_j|`` clipped to [1e-3, 1] (``length`` <= 0: none)."""
+    out = np.ones(kind.shape[0])
+    for j in range(kind.shape[0]):
+        if kind[j] != OCCLUSION:
+            continue
+        depth = min(max(-h[j] / theta_star, 0.0), 1.0)
+        out[j] = 1.0 + (most - 1.0) * depth
+        if length > 0.0:
+            a0, a1, a2 = abs(A[j, 0]), abs(A[j, 1]), abs(A[j, 2])
+            # one component reaching 1 / length caps the factor: no square to overflow
+            if length * max(a0, a1, a2) < 1.0:
+                grad = math.sqrt(a0 * a0 + a1 * a1 + a2 * a2)
+                out[j] *= min(max(length * grad, 1e-3), 1.0)  # > 0: the row stays soft
+    return out
+
+
+@numba.njit(cache=True)
 def _solve(v_hat, An, bn, weights, lb3, ub3, params, settings):  # pragma: no cover (compiled)
     """`SafetyFilter._solve`: (found, v, QP calls)."""
     alpha_v, slack_reg, verify_tol, norm_cuts = params[2], params[3], params[4], int(params[5])

@@ -99,7 +99,13 @@ from uavtrack_env.safety.qp_arrays import (
     triage,
     with_cut,
 )
-from uavtrack_env.safety.qp_layers import LAYER_STATUS, OUT_HEAD, certify_changed, certify_many
+from uavtrack_env.safety.qp_layers import (
+    LAYER_STATUS,
+    OUT_HEAD,
+    certify_changed,
+    certify_many,
+    occlusion_factors,
+)
 from uavtrack_env.validation import Fields as _Fields
 
 SOLVERS = ("daqp", "proxqp", "daqp-direct")
@@ -368,21 +374,11 @@ class SafetyFilter:
         from 1 at h = 0 up to `ShieldOptions.occlusion_urgency` at h = -theta* (37), where the
         sight line touches the occluder and beyond, times its leverage ``L |A|`` clipped to
         [1e-3, 1] (`ShieldOptions.occlusion_leverage`; ``A`` the rows' gradients)."""
-        occlusion = np.asarray(kind) == OCCLUSION
-        depth = np.clip(-np.asarray(h, float)[occlusion] / self.cbf.theta_star, 0.0, 1.0)
-        out = np.ones(occlusion.shape)
-        out[occlusion] = 1.0 + (self.options.occlusion_urgency - 1.0) * depth
         length = self.options.occlusion_leverage
-        if length is not None:
-            a = np.abs(np.asarray(A, float)[occlusion])
-            leverage = np.ones(len(a))
-            # a component alone reaching 1 / L caps the factor; the norm of the others cannot
-            # overflow (gradients grow without bound as the UAV nears its occluder)
-            below = length * a.max(axis=1, initial=0.0) < 1.0
-            grad = np.sqrt((a[below] ** 2).sum(axis=1))
-            leverage[below] = np.clip(length * grad, 1e-3, 1.0)  # > 0: the row stays soft
-            out[occlusion] *= leverage
-        return out
+        return occlusion_factors(
+            np.asarray(kind), np.asarray(h, float), np.asarray(A, float), self.cbf.theta_star,
+            self.options.occlusion_urgency, 0.0 if length is None else length,
+        )  # fmt: skip
 
     def certify(
         self, u_nominal: np.ndarray, ctx: SafetyContext, rows: CBFRows | None = None
