@@ -458,7 +458,7 @@ def test_urgency_grows_from_one_at_the_cone_to_its_bound_at_the_occluder():
     h = np.array([0.3, 0.0, -0.5 * t, -t, -2.0 * t, -t])
     kind = np.array([OCCLUSION] * 5 + [CONNECT])
     unit = np.tile([0.0, 0.6, 0.8], (6, 1))
-    np.testing.assert_allclose(f.urgency(kind, h, unit), [1.0, 1.0, 5.5, 10.0, 10.0, 1.0])
+    np.testing.assert_allclose(f.slack_factors(kind, h, unit), [1.0, 1.0, 5.5, 10.0, 10.0, 1.0])
     with pytest.raises(ValueError, match="occlusion_urgency"):
         SafetyFilter(occlusion_urgency=0.5)
 
@@ -482,7 +482,7 @@ def test_an_occlusion_rows_weight_scales_with_how_fast_a_velocity_turns_its_angl
     leverage[-1] = 1.0
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        got = f.urgency(kind, h, A)
+        got = f.slack_factors(kind, h, A)
     np.testing.assert_allclose(got, urgency * leverage)
     assert (got > 0).all()  # a zero gradient keeps the row soft
 

@@ -30,7 +30,7 @@ LAYER_STATUS = ("optimal", "relaxed", "fallback", "brake")
 
 @numba.njit(cache=True)
 def occlusion_factors(kind, h, A, theta_star, most, length):  # pragma: no cover (compiled)
-    """`SafetyFilter.urgency`: each row's factor on its slack weight, 1 but for the occlusion
+    """`SafetyFilter.slack_factors`: each row's factor on its slack weight, 1 but for the occlusion
     rows: their urgency (1 at h = 0 to ``most`` at h = -theta*) times their leverage
     ``length |A_j|`` clipped to [1e-3, 1] (``length`` <= 0: none)."""
     out = np.ones(kind.shape[0])
@@ -78,10 +78,12 @@ def _solve(v_hat, An, bn, weights, lb3, ub3, params, settings):  # pragma: no co
 
 
 @numba.njit(cache=True)
-def solve_layers(v_hat, An, bn, kinds, urgency, lb3, ub3, params, settings):  # pragma: no cover
+def solve_layers(
+    v_hat, An, bn, kinds, slack_factors, lb3, ub3, params, settings
+):  # pragma: no cover
     """The layers of `SafetyFilter._layers` until one gives an answer: (v0, v1, v2, status
-    (index into `LAYER_STATUS`), QP calls). ``urgency``: each row's factor on its occlusion
-    slack weight (`SafetyFilter.urgency`); ``params``: soft_penalty, hard_penalty, alpha_v,
+    (index into `LAYER_STATUS`), QP calls). ``slack_factors``: each row's factor on its occlusion
+    slack weight (`SafetyFilter.slack_factors`); ``params``: soft_penalty, hard_penalty, alpha_v,
     slack_regularization, verify_tol, norm_cuts; ``settings``: `daqp_native.settings`."""
     soft, hard = params[0], params[1]
     m = kinds.shape[0]
@@ -101,12 +103,19 @@ def solve_layers(v_hat, An, bn, kinds, urgency, lb3, ub3, params, settings):  # 
         return v[0], v[1], v[2], 0, calls
     if occlusion.any():
         found, v, n = _solve(
-            v_hat, An, bn, np.where(occlusion, soft * urgency, 0.0), lb3, ub3, params, settings
+            v_hat,
+            An,
+            bn,
+            np.where(occlusion, soft * slack_factors, 0.0),
+            lb3,
+            ub3,
+            params,
+            settings,
         )
         calls += n
         if found:
             return v[0], v[1], v[2], 1, calls
-    base = np.where(connect, soft, np.where(occlusion, 1e-2 * soft * urgency, 0.0))
+    base = np.where(connect, soft, np.where(occlusion, 1e-2 * soft * slack_factors, 0.0))
     if connect.any():
         found, v, n = _solve(v_hat, An, bn, base, lb3, ub3, params, settings)
         calls += n
@@ -150,7 +159,7 @@ indices, the violated soft rows' indices and their violations, the violated hard
 
 @numba.njit(cache=True)
 def certify_changed(
-    u, yaw, velocity, has_velocity, A, b, kind, urgency, lb3, ub3, params, settings
+    u, yaw, velocity, has_velocity, A, b, kind, slack_factors, lb3, ub3, params, settings
 ):  # pragma: no cover (compiled)
     """`SafetyFilter.certify` of a nominal ``u`` that `qp_arrays.nominal_holds` rejected, up to
     its report's names: `qp_arrays.triage`, `solve_layers`, `qp_arrays.outcome` in one call,
@@ -166,7 +175,7 @@ def certify_changed(
     u_safe[0], u_safe[1], u_safe[2], u_safe[3] = v[0], v[1], v[2], w
     if stage == 2:
         v0, v1, v2, status, calls = solve_layers(
-            v, An, bn, kinds, urgency[kept], bounds[0], bounds[1], params, settings
+            v, An, bn, kinds, slack_factors[kept], bounds[0], bounds[1], params, settings
         )
         solver = 1
         if status == 3:
@@ -202,10 +211,11 @@ def certify_changed(
 
 @numba.njit(cache=True)
 def certify_many(
-    u, yaw, velocity, A, b, kind, urgency, begin, end, lb3, ub3, params, settings
+    u, yaw, velocity, A, b, kind, slack_factors, begin, end, lb3, ub3, params, settings
 ):  # pragma: no cover (compiled)
     """`qp_arrays.nominal_holds`, then `certify_changed` where it fails, for m UAVs at once:
-    UAV j's command ``u[j]``, yaw, actual velocity and rows ``A/b/kind/urgency[begin[j]:end[j]]``.
+    UAV j's command ``u[j]``, yaw, actual velocity and rows
+    ``A/b/kind/slack_factors[begin[j]:end[j]]``.
     Returns (changed (m,), outputs (m, width)): row j is `certify_changed`'s packed output, or
     ``u[j]`` alone where the nominal holds."""
     m = u.shape[0]
@@ -225,8 +235,8 @@ def certify_many(
             outs[j, :4] = u[j]
             continue
         out = certify_changed(
-            u[j], yaw[j], velocity[j], True, A[a:e], b[a:e], kind[a:e], urgency[a:e], lb3, ub3,
-            params, settings,
+            u[j], yaw[j], velocity[j], True, A[a:e], b[a:e], kind[a:e], slack_factors[a:e],
+            lb3, ub3, params, settings,
         )  # fmt: skip
         outs[j, : out.shape[0]] = out
         changed[j] = True

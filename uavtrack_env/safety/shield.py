@@ -20,15 +20,15 @@ Layers, each tried only if the previous one cannot give an answer:
    if only a bound is violated, its closed-form projection is returned when it is feasible.
 2. hard QP: every row hard ("optimal").
 3. relaxed QPs ("relaxed"): first every row hard but the occlusion rows, which take slack under
-   an L1 penalty, weighted the more the nearer a row's sight line is to its occluder and priced
-   in the rate of its angle (`SafetyFilter.urgency`), so that of two conflicting occlusion rows
-   the one about to occlude is kept, and a row no velocity can answer does not take the
-   command from one it can; if that is infeasible too, the connectivity rows take slack as
-   well, weighted at least 10 times the occlusion rows (100 / `occlusion_urgency`). Connectivity
-   is therefore given up only where it conflicts with the collision and altitude rows, never
-   for occlusion. Each runs only after the layer before it was infeasible, so a family's slack
-   is zero whenever a solution without it exists (up to the exactness of the L1 penalty,
-   `soft_penalty` far above the rows' multipliers).
+   an L1 penalty, weighted the more the nearer a row's sight line is to its occluder and
+   priced in the rate of its angle (`SafetyFilter.slack_factors`), so that of two conflicting
+   occlusion rows the one about to occlude is kept, and a row no velocity can answer does not
+   take the command from one it can; if that is infeasible too, the connectivity rows take
+   slack as well, weighted at least 10 times the occlusion rows (100 / `occlusion_urgency`).
+   Connectivity is therefore given up only where it conflicts with the collision and altitude
+   rows, never for occlusion. Each runs only after the layer before it was infeasible, so a
+   family's slack is zero whenever a solution without it exists (up to the exactness of the L1
+   penalty, `soft_penalty` far above the rows' multipliers).
 4. fallbacks by priority: the rows whose geometry is known are never traded for rows built on
    an estimate. The car's row (a UKF estimate) is slacked first (weight `hard_penalty` / 100),
    then the other UAVs' rows (`hard_penalty`) with the floor and obstacle rows still hard, then
@@ -159,14 +159,14 @@ class ShieldOptions:
     """Not in the paper: an occlusion row's slack weight in the relaxed QPs grows linearly from
     ``soft_penalty`` at h = 0 to this multiple of it at h = -theta* (the sight line touching
     the occluder, eq. (37)), so that of occlusion rows that conflict the one nearest to an
-    actual occlusion is kept (`SafetyFilter.urgency`). 1: every row alike. Below 100, so that
+    actual occlusion is kept (`SafetyFilter.slack_factors`). 1: every row alike. Below 100, so that
     connectivity still outweighs occlusion."""
     occlusion_leverage: float | None = 1.0
     """Not in the paper: a length L (m). An occlusion row's slack weight is also multiplied by
     ``L |grad h|`` clipped to [1e-3, 1], |grad h| the row's gradient before the rows are
     normalised (rad/s of its angle per m/s): its slack is priced in the rate of the angle, so a
     row whose angle a velocity barely turns (its occluder near the car, both far from the UAV)
-    cannot take the command away from rows it can keep (`SafetyFilter.urgency`). None: priced
+    cannot take the command away from rows it can keep (`SafetyFilter.slack_factors`). None: priced
     in m/s like the other rows."""
     make_way: bool = True
     """Not in the paper: a team-mate within the clearance of the car's box counts as anywhere
@@ -369,7 +369,7 @@ class SafetyFilter:
         those closest to active first (smallest b); rows the speed bound implies are dropped."""
         return nearest_camera_rows(rows.A, rows.b, yaw, self.alpha_v, k)
 
-    def urgency(self, kind: np.ndarray, h: np.ndarray, A: np.ndarray) -> np.ndarray:
+    def slack_factors(self, kind: np.ndarray, h: np.ndarray, A: np.ndarray) -> np.ndarray:
         """Each row's factor on its slack weight in the relaxed QPs: 1, and for an occlusion row
         from 1 at h = 0 up to `ShieldOptions.occlusion_urgency` at h = -theta* (37), where the
         sight line touches the occluder and beyond, times its leverage ``L |A|`` clipped to
@@ -538,7 +538,7 @@ class SafetyFilter:
             )  # fmt: skip
         A, b, kind, h, begin, end = packed
         changed, outs = certify_many(
-            u, yaws, velocities, A, b, kind, self.urgency(kind, h, A), begin, end, self._lb3,
+            u, yaws, velocities, A, b, kind, self.slack_factors(kind, h, A), begin, end, self._lb3,
             self._ub3, *self._native,
         )  # fmt: skip
         share = (time.perf_counter() - t0) * 1e6 / max(m, 1)
@@ -566,10 +566,10 @@ class SafetyFilter:
                 "nominal", False, 0.0, 0.0, [], time_us=(time.perf_counter() - t0) * 1e6,
                 rows=rows, neighbour_ids=ids,
             )  # fmt: skip
-        urgency = self.urgency(kind, rows.h, rows.A)
+        slack_factors = self.slack_factors(kind, rows.h, rows.A)
         if self._native is not None:
             out = certify_changed(
-                u, yaw, velocity, has_velocity, rows.A, rows.b, kind, urgency, self._lb3,
+                u, yaw, velocity, has_velocity, rows.A, rows.b, kind, slack_factors, self._lb3,
                 self._ub3, *self._native,
             )  # fmt: skip
             return out[:4], self._changed_report(out.tolist(), u, rows, ids, t0)
@@ -582,7 +582,7 @@ class SafetyFilter:
         if stage == 2:
             try:
                 v, status, solver, calls = self._solve_layers(
-                    v, An, bn, kinds, lb, ub, urgency[kept]
+                    v, An, bn, kinds, lb, ub, slack_factors[kept]
                 )
             except Exception:  # never let a numerical failure take the UAV down: brake
                 v, status, solver, calls = np.zeros(3), "fallback", "brake", 0
@@ -597,36 +597,39 @@ class SafetyFilter:
         )
 
     # ----------------------------------------------------------------- layers
-    def _solve_layers(self, v_hat, An, bn, kinds, lb3, ub3, urgency=None):
+    def _solve_layers(self, v_hat, An, bn, kinds, lb3, ub3, slack_factors=None):
         """Hard QP, relaxed QP, then the fallbacks by row priority, then brake (module
         docstring): each fallback keeps the rows of the known geometry hard while it can.
-        ``urgency``: the rows' factors on their occlusion slack weights (`urgency`; None: 1)."""
+        ``slack_factors``: the rows' factors on their occlusion slack weights
+        (`slack_factors`; None: 1)."""
         calls = 0
-        urgency = np.ones(len(kinds)) if urgency is None else urgency
-        for status, weights in self._layers(kinds, urgency):
+        slack_factors = np.ones(len(kinds)) if slack_factors is None else slack_factors
+        for status, weights in self._layers(kinds, slack_factors):
             v, n = self._solve(v_hat, An, bn, weights, lb3, ub3)
             calls += n
             if v is not None:
                 return v, status, self.solver, calls
         return np.zeros(3), "fallback", "brake", calls
 
-    def _layers(self, kinds: np.ndarray, urgency: np.ndarray):
+    def _layers(self, kinds: np.ndarray, slack_factors: np.ndarray):
         """(status, slack weight per row; 0 = hard) of each QP layer, in the order tried.
 
         Priorities: the floor and the static obstacles (exact geometry) > the other UAVs
         (messages, with their reachable sets) > the car (an estimate) > connectivity > occlusion.
-        The first relaxation slacks the occlusion rows only, each weighted by its ``urgency``;
-        connectivity is slacked only when it conflicts with the collision and altitude rows,
-        and from then on outweighs occlusion at least 100:``occlusion_urgency``. A fallback
-        gives up the lowest-priority hard family that is left.
+        The first relaxation slacks the occlusion rows only, each weighted by its factor in
+        ``slack_factors``; connectivity is slacked only when it conflicts with the collision and
+        altitude rows, and from then on outweighs occlusion at least 100:``occlusion_urgency``.
+        A fallback gives up the lowest-priority hard family that is left.
         """
         yield "optimal", np.zeros(len(kinds))
         opt = self.options
         occlusion, connect = kinds == OCCLUSION, kinds == CONNECT
         if occlusion.any():
-            yield "relaxed", np.where(occlusion, opt.soft_penalty * urgency, 0.0)
+            yield "relaxed", np.where(occlusion, opt.soft_penalty * slack_factors, 0.0)
         base = np.where(
-            connect, opt.soft_penalty, np.where(occlusion, 1e-2 * opt.soft_penalty * urgency, 0.0)
+            connect,
+            opt.soft_penalty,
+            np.where(occlusion, 1e-2 * opt.soft_penalty * slack_factors, 0.0),
         )
         if connect.any():
             yield "relaxed", base
