@@ -102,16 +102,8 @@ def solve_layers(
     if found:
         return v[0], v[1], v[2], 0, calls
     if occlusion.any():
-        found, v, n = _solve(
-            v_hat,
-            An,
-            bn,
-            np.where(occlusion, soft * slack_factors, 0.0),
-            lb3,
-            ub3,
-            params,
-            settings,
-        )
+        weights = np.where(occlusion, soft * slack_factors, 0.0)
+        found, v, n = _solve(v_hat, An, bn, weights, lb3, ub3, params, settings)
         calls += n
         if found:
             return v[0], v[1], v[2], 1, calls
