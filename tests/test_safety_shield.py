@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import warnings
 
 import numpy as np
 import pytest
@@ -467,8 +468,6 @@ def test_urgency_grows_from_one_at_the_cone_to_its_bound_at_the_occluder():
 def test_an_occlusion_rows_weight_scales_with_how_fast_a_velocity_turns_its_angle(length):
     """The leverage factor is L |grad h| clipped to [1e-3, 1], on occlusion rows only, without
     overflow for a gradient beyond float range squared (the UAV at its occluder)."""
-    import warnings
-
     from uavtrack_env.safety.cbf import CONNECT, OCCLUSION
 
     f = SafetyFilter(occlusion_urgency=10.0, occlusion_leverage=length)
