@@ -347,6 +347,13 @@ BAD = [
     case(ShieldOptions, "norm_cuts", 4.5, V, rf"norm_cuts must be {INT} >= 0"),
     case(ShieldOptions, "prune", None, T, r"prune must be True or False"),
     case(ShieldOptions, "make_way", 1, T, r"make_way must be True or False"),
+    case(
+        ShieldOptions,
+        "climb_over_occluders",
+        "yes",
+        T,
+        r"climb_over_occluders must be True or False",
+    ),
     case(ShieldOptions, "tol", NAN, V, rf"tol must be {NONNEG}"),
     case(ShieldOptions, "verify_tol", -1.0, V, rf"verify_tol must be {NONNEG}"),
     case(ShieldOptions, "lag_tau", INF, V, rf"lag_tau must be {NONNEG}"),

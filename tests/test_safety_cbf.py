@@ -20,6 +20,7 @@ from uavtrack_env.safety.cbf import (
     OCCLUSION,
     TARGET,
     UAV,
+    RowBuilder,
     h_box,
 )
 from uavtrack_env.safety.config import CBFConfig
@@ -268,24 +269,33 @@ def axis_occl_h(p, center, half, n, theta_star):
     return theta(z) - theta_star - np.arcsin(min(np.hypot(half[0], half[1]) / b, 0.99))
 
 
-def edges_occl_h(p, center, half, n, theta_star):
+def edges_occl_h(p, center, half, n, theta_star, over=False):
     """Independent h of the 'edges' occluder: the least theta over the box's 12 edges, each
     minimised numerically, minus theta*; with the sight line through the box, minus the least
-    theta over the edges of its outline seen from p (one of the edge's two faces towards p)."""
+    theta over the edges of its outline seen from p (one of the edge's two faces towards p;
+    every edge from inside the box), and with ``over`` over those of them on the top face if
+    there are any."""
     corners = [center + half * (2 * np.array(s) - 1) for s in np.ndindex(2, 2, 2)]
     inside = segment_hits_boxes(p, p + n, center[None], half[None])[0]
-    best = np.inf
+    within = (np.abs(p - center) <= half).all()
+    top = center[2] + half[2]
+    best, best_top = np.inf, np.inf
     for a in corners:
         for b in corners:
             if np.count_nonzero(a != b) != 1:  # an edge joins corners differing on one axis
                 continue
             faces = [(k, np.sign(a[k] - center[k])) for k in range(3) if a[k] == b[k]]
             towards = [sg * (p[k] - center[k]) > half[k] for k, sg in faces]
-            if inside and sum(towards) != 1:
+            if inside and not within and sum(towards) != 1:
                 continue
             seg = lambda t, a=a, b=b: occl_h(p, a + t * (b - a), n, 0.0)  # noqa: E731
             res = minimize_scalar(seg, bounds=(0, 1), method="bounded", options={"xatol": 1e-12})
-            best = min(best, seg(0.0), seg(1.0), seg(res.x))
+            least = min(seg(0.0), seg(1.0), seg(res.x))
+            best = min(best, least)
+            if a[2] == top and b[2] == top:
+                best_top = min(best_top, least)
+    if over and inside and best_top < np.inf:
+        best = best_top
     return (-best if inside else best) - theta_star
 
 
@@ -316,6 +326,55 @@ def test_box_occluder_rows_match_finite_differences(point, seed, model):
     else:
         h_of = lambda j, V, t: h_fn(p + t * V, c[j], hx[j], q + t * vq - (p + t * V), ts)  # noqa: E731
     check_family(rows, OCCLUSION, h_of, rng)
+
+
+def piercing_context(rng, occlusion_model):
+    """A UAV low among boxes, most of them on its sight line to the car (the line goes through
+    them), one of them around the UAV itself; the car moving."""
+    p = np.array([0.0, 0.0, 0.5]) + rng.uniform(-1, 1, 3) * [1, 1, 0.3]
+    q = p + np.array([14.0, 0.0, 0.2]) + rng.uniform(-2, 2, 3) * [1, 1, 0.1]
+    along = rng.uniform(0.15, 0.9, (5, 1)) * (q - p)
+    centers = p + along + rng.uniform(-0.4, 0.4, (5, 3)) * [1, 1, 0.2]
+    half = rng.uniform([0.3, 0.3, 0.4], [1.5, 1.5, 2.0], (5, 3))
+    centers[0], half[0] = p + rng.uniform(-0.2, 0.2, 3), rng.uniform(0.4, 1.0, 3)
+    return SafetyContext(
+        position=p, yaw=0.0, obstacle_centers=centers, obstacle_half_extents=half,
+        target_position=q, target_velocity=rng.uniform(-3, 3, 3) * [1, 1, 0],
+        target_heading=0.0,
+    )  # fmt: skip
+
+
+@pytest.mark.parametrize("model", ["paper", "moving-target"])
+@pytest.mark.parametrize("seed", range(4))
+def test_over_the_top_rows_match_finite_differences(model, seed):
+    """`RowBuilder` with ``over_the_top``: for a box the sight line goes through, h is minus
+    the least angle to the top-face edges of its outline (an independent minimisation) and
+    its row the finite-difference rate; for the other boxes the rows are the 'edges' rows.
+    Climbing raises such a row's h, where the plain row's gradient is often level."""
+    rng = np.random.default_rng(700 + seed)
+    cbf = CBFConfig(occlusion_model=model, occlusion_point="edges").resolve()
+    ctx = piercing_context(rng, model)
+    builder = RowBuilder(cbf)
+    rows, over = builder(ctx), builder(ctx, over_the_top=True)
+    p, c, hx = ctx.position, ctx.obstacle_centers, ctx.obstacle_half_extents
+    q, vq, ts = ctx.target_position, ctx.target_velocity, cbf.theta_star
+    if model == "paper":
+        h_of = lambda j, V, t: edges_occl_h(p + t * V, c[j], hx[j], q - p, ts, True)  # noqa: E731
+    else:
+        h_of = lambda j, V, t: edges_occl_h(  # noqa: E731
+            p + t * V, c[j], hx[j], q + t * vq - (p + t * V), ts, True
+        )
+    check_family(over, OCCLUSION, h_of, rng)
+    np.testing.assert_array_equal(over.kind, rows.kind)
+    pierced = segment_hits_boxes(p, q, c, hx)
+    assert pierced[1:].sum() >= 2 and pierced[0]  # the cases the rows differ in
+    for r in np.flatnonzero(over.kind == OCCLUSION):
+        j = over.index[r]
+        if not pierced[j]:
+            np.testing.assert_array_equal(over.A[r], rows.A[r])
+            assert over.h[r] == rows.h[r]
+        elif p[2] < c[j, 2] + hx[j, 2]:  # under the top: climbing leads out
+            assert over.A[r, 2] < 0.0 and over.h[r] <= -ts
 
 
 @pytest.mark.parametrize("model", ["paper", "moving-target"])

@@ -656,3 +656,50 @@ def test_a_sight_line_through_an_obstacle_is_steered_out(depth):
         p = p + DT * global_v(u, 0.0)
         steps += 1
     assert not through(p), f"still behind the box after {steps * DT:.1f} s"
+
+
+def pinned_low(rng):
+    """A UAV 0.6-0.9 m up whose sight line to a parked car 8-14 m away goes through a box
+    near the car, 0.05-0.2 m inside its side edge and 0.25-0.6 m under its top, so that the
+    box's outline is nearest to the line at the side; a wall 10 mm outside the UAV's clearance
+    on that side. (p, q, centres, half sizes, the side: +-1.)"""
+    clearance = CBFConfig().obstacle_clearance
+    length, z0, side = rng.uniform(8, 14), rng.uniform(0.6, 0.9), rng.choice([-1.0, 1.0])
+    p, q = np.array([0.0, 0.0, z0]), np.array([length, 0.0, 0.75])
+    x = length - rng.uniform(1.5, 4.0)
+    top = z0 + x / length * (q[2] - z0) + rng.uniform(0.25, 0.6)
+    width, edge = rng.uniform(1.0, 2.5), side * rng.uniform(0.05, 0.2)
+    centers = [[x, edge - side * width / 2, top / 2], [0.0, side * (clearance + 1.01), 3.0]]
+    half = [[rng.uniform(0.3, 0.8), width / 2, top / 2], [3.0, 1.0, 3.0]]
+    return p, q, np.array(centers), np.array(half), side
+
+
+@pytest.mark.parametrize("climb", [True, False])
+@pytest.mark.parametrize("seed", range(6))
+def test_a_uav_pinned_low_climbs_over_the_box_that_hides_the_car(seed, climb):
+    """Closed loop, 5 s, tuned 'edges' rows, a command into the wall and down: the sideways way
+    out of the occlusion is blocked by the wall, and the occlusion row's least-angle outline
+    point is on the box's vertical edge, whose gradient is level. Made again with the way out
+    over the box's top (`SafetyFilter.climb_over_occluders`), the certificate climbs: the line
+    clears the box and stays clear for the last second, with every obstacle's clearance and
+    the floor kept and no fallback. Without it the car stays hidden."""
+    p, q, centers, half, side = pinned_low(np.random.default_rng(900 + seed))
+    cbf = CBFConfig(occlusion_model="moving-target", occlusion_point="edges").resolve()
+    f = SafetyFilter(cbf=cbf, climb_over_occluders=climb)
+    nominal = cam_u([0.0, side, -0.3], 0.0)
+    assert segment_hits_boxes(p, q, centers, half).any()
+    hidden = []
+    for _ in range(int(5.0 / DT)):
+        ctx = SafetyContext(
+            position=p, yaw=0.0, target_position=q, target_heading=0.0,
+            obstacle_centers=centers, obstacle_half_extents=half,
+        )  # fmt: skip
+        u, rep = f.certify(nominal, ctx)
+        assert rep.status != "fallback", rep
+        p = p + DT * global_v(u, 0.0)
+        for c, h in zip(centers, half, strict=True):
+            assert box_clearance(p, c, h) >= cbf.obstacle_clearance - 1e-6
+        assert p[2] >= cbf.z_min - 1e-6
+        hidden.append(segment_hits_boxes(p, q, centers, half).any())
+    last_second = hidden[-int(1.0 / DT) :]
+    assert not any(last_second) if climb else all(last_second)

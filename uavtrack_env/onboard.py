@@ -520,8 +520,8 @@ class OnboardAgent:
         out, j = self._seen
         own = out.data[j]
         done = self.filter.certify_pose(u, float(own[3]), own[4:7], rows, self.neighbour_ids())
-        if done[1].status != "fallback":  # no context to build
-            return done
+        if done[1].status != "fallback" and not self.filter.may_climb_over_occluders(done[1]):
+            return done  # no context to build
         return self.filter.settle(u, self.context(), done)
 
     def neighbour_ids(self, known: int | None = None) -> tuple[int, ...]:
@@ -562,9 +562,12 @@ def certify_team(agents: Sequence[OnboardAgent], u: np.ndarray) -> Certificates:
 
 
 def _settle(agents: Sequence[OnboardAgent], u: np.ndarray, done: Certificates) -> Certificates:
-    """`SafetyFilter.settle` for the agents whose certificate is a fallback (the others'
-    certificates unchanged)."""
+    """`SafetyFilter.settle` for the agents whose certificate is a fallback or may climb over
+    an occluder (`SafetyFilter.may_climb_over_occluders`; the others' certificates unchanged)."""
     retry = np.flatnonzero(done.fallback).tolist()
+    for j in np.flatnonzero(done.relaxed).tolist():
+        if agents[j].filter.may_climb_over_occluders(done.report(j)):
+            retry.append(j)
     if not retry:
         return done
     action, reports = done.action.copy(), done.reports()

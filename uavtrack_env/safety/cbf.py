@@ -36,7 +36,7 @@ import numpy as np
 
 from uavtrack_env.safety.barrier_rows import all_rows, box_sdists, make_way
 from uavtrack_env.safety.config import CBFConfig
-from uavtrack_env.safety.occlusion import POINT_MODES
+from uavtrack_env.safety.occlusion import OVER_THE_TOP, POINT_MODES
 from uavtrack_env.safety.second_order import second_order_rows
 
 KIND_NAMES = ("uav", "obstacle", "target", "floor", "connect", "occlusion")
@@ -382,9 +382,13 @@ class RowBuilder:
         self._theta_star = cbf.theta_star
         self._second_params = self.second_order_params()
 
-    def __call__(self, ctx: SafetyContext, make_way: bool | None = None) -> CBFRows:
+    def __call__(
+        self, ctx: SafetyContext, make_way: bool | None = None, over_the_top: bool = False
+    ) -> CBFRows:
         """All member rows of the QP (47) for this context (``make_way``: overrides the
-        builder's, `ShieldOptions.make_way`)."""
+        builder's, `ShieldOptions.make_way`; ``over_the_top``: the 'edges' rows of boxes the
+        sight line goes through lead out over the box's top,
+        `SafetyFilter.climb_over_occluders`)."""
         cbf = self.cbf
         nb, oc = ctx.neighbours, ctx.obstacle_centers
         car = ctx.target_position is not None
@@ -412,7 +416,7 @@ class RowBuilder:
             cbf.z_min,
             car and self.occlusion,  # the occlusion rows (45), `occlusion_family`
             self._theta_star,
-            self._point_mode,
+            OVER_THE_TOP if over_the_top and self.climbs_over_occluders else self._point_mode,
             cbf.occlusion_model == "moving-target",
             cbf.occlusion_size_margin,
             self._gammas,
@@ -426,6 +430,11 @@ class RowBuilder:
         if self.lag_tau > 0.0:
             b = self._second_order(ctx, A, h, b, margin, kind, index, sizes, rows_rho)
         return CBFRows(A, b, h, gamma, drift, margin, kind, index)
+
+    @property
+    def climbs_over_occluders(self) -> bool:
+        """Its occlusion rows have a way out over a box's top (`over_the_top`): 'edges' only."""
+        return self.occlusion and self._point_mode == POINT_MODES.index("edges")
 
     def pair_radii(self, ctx: SafetyContext) -> np.ndarray:
         """The team-mates' radii in the pair rows: the context's, grown for team-mates the

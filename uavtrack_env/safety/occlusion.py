@@ -16,6 +16,9 @@ import numpy as np
 
 POINT_MODES = ("centre", "axis", "edges")
 """`CBFConfig.occlusion_point` values, indexed by the kernels' ``mode``."""
+OVER_THE_TOP = len(POINT_MODES)
+"""The kernels' ``mode`` for 'edges' whose sight line through a box leaves it over the box's
+top: of its outline, only the edges of the top face (`SafetyFilter.climb_over_occluders`)."""
 
 
 def _edge_geometry() -> tuple[np.ndarray, np.ndarray]:
@@ -62,10 +65,18 @@ def _on_outline(p, c, half, k):  # pragma: no cover (compiled)
 
 
 @numba.njit(cache=True)
+def _on_top(k):  # pragma: no cover (compiled)
+    """Whether edge k is an edge of the box's top face."""
+    return _EDGE_AXIS[k] != 2 and _EDGE_START[k, 2] > 0.0
+
+
+@numba.njit(cache=True)
 def _occluder_point(p, n, reach, c, half, mode):  # pragma: no cover (compiled)
     """(p_o of one box (`occluder_points`), whether the sight line goes through the box);
     ``n`` is the unit sight line, ``reach`` the distance to the car. Through the box, 'edges'
-    takes the least-angle point of the box's outline (`_on_outline`)."""
+    takes the least-angle point of the box's outline (`_on_outline`), `OVER_THE_TOP` that of
+    the outline's top-face edges (of every top-face edge from inside the box), or of the whole
+    outline if none of its edges is on the top face."""
     out = np.empty(3)
     if mode == 0:
         out[:] = c
@@ -97,9 +108,15 @@ def _occluder_point(p, n, reach, c, half, mode):  # pragma: no cover (compiled)
     inside = _pierces(p, n, reach, c, half)
     # from a UAV inside the box no face faces it and every edge stays a candidate
     outline = inside and not (np.abs(p - c) <= half).all()
+    over = inside and mode == OVER_THE_TOP
     best_cos = -np.inf
-    for k in range(12):
-        if outline and not _on_outline(p, c, half, k):
+    for step in range(24):  # a second sweep only if the first found no top-face edge
+        k = step % 12
+        if step == 12:
+            if best_cos > -np.inf or not over:
+                break
+            over = False
+        if (outline and not _on_outline(p, c, half, k)) or (over and not _on_top(k)):
             continue
         ax = _EDGE_AXIS[k]
         s0 = c[0] + _EDGE_START[k, 0] * half[0]

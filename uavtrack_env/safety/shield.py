@@ -174,11 +174,17 @@ class ShieldOptions:
     (`barrier_rows.make_way`), so that the other UAVs back off and let it out over the car
     instead of pinning it there with their half of the pair row. A courtesy: a fallback keeps
     it only where it costs no hard row (`SafetyFilter.settle`)."""
+    climb_over_occluders: bool = True
+    """Not in the paper: a relaxed certificate that slacks the row of a box its sight line goes
+    through is made again with that row's way out over the box's top, and kept where it leaves
+    less occlusion slack and keeps every other row (`SafetyFilter.climb_over_occluders`).
+    Occlusion point 'edges' only."""
 
     def __post_init__(self) -> None:
         f = _Fields(self)
         f.choice("obstacle_model", ("box", "point"))
-        for name in ("target_as_obstacle", "occlusion", "prune", "make_way"):
+        flags = ("target_as_obstacle", "occlusion", "prune", "make_way", "climb_over_occluders")
+        for name in flags:
             f.flag(name)
         f.number("connectivity_margin", lo=0, none_means="2.1 dt alpha_v^2")
         f.number("soft_penalty", lo=0, lo_open=True)
@@ -332,6 +338,9 @@ class SafetyFilter:
             accel_bound=self.options.accel_bound if self.options.lag_tau > 0.0 else 0.0,
             make_way=self.options.make_way,
         )
+        self._climbs_over = (
+            self.options.climb_over_occluders and self.row_builder.climbs_over_occluders
+        )
         self._lb3 = np.full(3, -self.v_max)
         self._ub3 = np.full(3, self.v_max)
         opt = self.options
@@ -398,10 +407,13 @@ class SafetyFilter:
     def settle(
         self, u: np.ndarray, ctx: SafetyContext, done: tuple[np.ndarray, ShieldReport]
     ) -> tuple[np.ndarray, ShieldReport]:
-        """``done`` = certify's (action, report) of ``u`` on ``rows(ctx)``; if it is a fallback,
-        then `climb_over_car`. Where the rows grew a team-mate's radius (`ShieldOptions.make_way`)
-        that growth is a courtesy: a fallback keeps it only if its action breaks no hard row of
-        the plain rows more than the plain rows' own certificate does."""
+        """``done`` = certify's (action, report) of ``u`` on ``rows(ctx)``; if it is relaxed,
+        `climb_over_occluders`; if it is a fallback, `climb_over_car`. Where the rows grew a
+        team-mate's radius (`ShieldOptions.make_way`) that growth is a courtesy: a fallback keeps
+        it only if its action breaks no hard row of the plain rows more than the plain rows' own
+        certificate does."""
+        if done[1].status == "relaxed":
+            return self.climb_over_occluders(u, ctx, done)
         if done[1].status != "fallback":
             return done
         if self.row_builder.makes_way(ctx):
@@ -456,6 +468,52 @@ class SafetyFilter:
             np.maximum(after[mine], 0.0).sum() >= np.maximum(excess[mine], 0.0).sum()
             or (after[fixed] > np.maximum(excess[fixed], 0.0) + tol).any()
         ):
+            return done
+        return again
+
+    def may_climb_over_occluders(self, report: ShieldReport) -> bool:
+        """A relaxed certificate whose rows hold an occlusion row at or below -theta*, where a
+        sight line through its box has it (`climb_over_occluders` may then change it)."""
+        rows = report.rows
+        if report.status != "relaxed" or rows is None or not self._climbs_over:
+            return False
+        return bool((rows.h[rows.kind == OCCLUSION] <= -self.cbf.theta_star).any())
+
+    def climb_over_occluders(
+        self, u: np.ndarray, ctx: SafetyContext, done: tuple[np.ndarray, ShieldReport]
+    ) -> tuple[np.ndarray, ShieldReport]:
+        """``done`` = a relaxed certificate of ``u`` on ``rows(ctx)``; if it slacks an occlusion
+        row whose sight line goes through its box, the certificate again with such rows leading
+        out over their box's top (`RowBuilder` ``over_the_top``). It replaces ``done`` where
+        it leaves less occlusion slack (m/s on unit rows, each certificate on its own rows)
+        and breaks no other row more.
+
+        Through a box, a row's point is the least-angle point of the box's outline, often a
+        vertical edge: its gradient then has no vertical part, and a UAV low among boxes whose
+        sideways way out another box blocks keeps its car hidden, where climbing would clear
+        the line."""
+        rows = done[1].rows
+        if not self.may_climb_over_occluders(done[1]):
+            return done
+        occluded = rows.kind == OCCLUSION
+        tol = self.options.verify_tol
+        excess = _row_excess(rows, done[0], ctx.yaw)
+        if not (excess[occluded] > tol).any():
+            return done
+        over = self.row_builder(ctx, over_the_top=True)
+        if not (np.array_equal(over.kind, rows.kind) and np.array_equal(over.index, rows.index)):
+            return done  # a row left N_oi (36): not a way out of the same occlusion
+        if np.array_equal(over.A, rows.A):
+            return done
+        t0 = time.perf_counter()
+        again = self._certify(u, ctx.yaw, ctx.velocity, over, ctx.neighbour_ids, t0)
+        after = _row_excess(over, again[0], ctx.yaw)
+        if (
+            again[1].status == "fallback"
+            or (after[~occluded] > np.maximum(excess[~occluded], 0.0) + tol).any()
+        ):
+            return done
+        if np.maximum(after[occluded], 0.0).sum() >= np.maximum(excess[occluded], 0.0).sum() - tol:
             return done
         return again
 
@@ -752,12 +810,16 @@ class SafetyFilter:
         )
 
 
-def _excess(rows: CBFRows, u: np.ndarray, yaw: float) -> np.ndarray:
-    """How far (m/s on unit rows) the camera-frame command ``u`` breaks each hard row (uav,
-    obstacle, car, floor) of ``rows``; negative where it keeps it, -inf for soft rows."""
+def _row_excess(rows: CBFRows, u: np.ndarray, yaw: float) -> np.ndarray:
+    """How far (m/s on unit rows) the camera-frame command ``u`` breaks each row of ``rows``;
+    negative where it keeps it."""
     V = cam_to_world_vec(np.asarray(u[:3], float), yaw)
-    excess = (rows.A @ V - rows.b) / np.maximum(np.linalg.norm(rows.A, axis=1), 1e-12)
-    return np.where(rows.kind < CONNECT, excess, -np.inf)
+    return (rows.A @ V - rows.b) / np.maximum(np.linalg.norm(rows.A, axis=1), 1e-12)
+
+
+def _excess(rows: CBFRows, u: np.ndarray, yaw: float) -> np.ndarray:
+    """`_row_excess` of each hard row (uav, obstacle, car, floor), -inf for soft rows."""
+    return np.where(rows.kind < CONNECT, _row_excess(rows, u, yaw), -np.inf)
 
 
 def pairs_answered(ctx: SafetyContext, mates: np.ndarray) -> np.ndarray | None:
@@ -883,6 +945,13 @@ class Certificates:
         if self._args is None:
             return np.array([r.status == "fallback" for r in self._made], bool)
         return self.changed & (self._args[2][:, 4] == LAYER_STATUS.index("fallback"))
+
+    @property
+    def relaxed(self) -> np.ndarray:
+        """(m,) the status is 'relaxed' (a soft row took slack)."""
+        if self._args is None:
+            return np.array([r.status == "relaxed" for r in self._made], bool)
+        return self.changed & (self._args[2][:, 4] == LAYER_STATUS.index("relaxed"))
 
     def _column(self, c: int, name: str) -> np.ndarray:
         if self._args is None:
