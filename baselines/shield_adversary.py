@@ -65,8 +65,9 @@ Factory = Callable[[Any, np.random.Generator], Policy]
 CONSTRAINTS = ("uav", "obstacle", "car", "ground", "link")
 """Barrier margins: nearest UAV - R_s, obstacle clearance, car clearance, altitude - radius,
 R_c - the longest link the team's connectivity needs."""
-KINDS = ("collision", "uav", "obstacle", "ground", "car", "disconnection")
-"""Violation counters: any collision, then by kind, then the broken-link steps."""
+KINDS = ("collision", "uav", "obstacle", "ground", "car", "disconnection", "occlusion")
+"""Violation counters: any collision, then by kind, then the broken-link steps and the steps
+with the car occluded (soft: not a failure of the shield)."""
 CONTACT_KEYS = {"uav": "uav", "obstacle": "obstacle", "ground": "ground", "car": "target"}
 """Violation kind -> key of ``info["collision_with"]``."""
 GRID_N = (3, 6, 10)
@@ -520,6 +521,7 @@ class EpisodeStats:
             self.agent_steps += 1
             self.counts["collision"] += bool(info["violations"]["collision"])
             self.counts["disconnection"] += bool(info["violations"]["disconnection"])
+            self.counts["occlusion"] += bool(info["violations"]["occlusion"])
             for kind, key in CONTACT_KEYS.items():
                 self.counts[kind] += bool(info["collision_with"].get(key, False))
             if "shield" in info:
@@ -749,7 +751,7 @@ def _num(x: float, digits: int = 2) -> str:
 
 
 HEADER = (
-    "| {key} | agent-steps | coll/M | uav/M | obst/M | ground/M | car/M | disc/M "
+    "| {key} | agent-steps | coll/M | uav/M | obst/M | ground/M | car/M | disc/M | occl/M "
     "| min uav-R_s | min obst | min car | min z-r | min R_c-link |"
 )
 
@@ -792,7 +794,8 @@ def format_report(summary: dict[str, Any], meta: dict[str, Any]) -> str:
         f"`{meta.get('commit', '?')}`, wall {meta.get('wall_s', math.nan):.0f} s.",
         "",
         "Violations per million agent-steps (coll = any collision; uav = closer than R_s; obst, "
-        "ground, car = contacts; disc = broken links) and the least TRUE margins in m "
+        "ground, car = contacts; disc = broken links; occl = the car occluded, a soft "
+        "constraint) and the least TRUE margins in m "
         "(nearest UAV - R_s, obstacle, car, altitude - UAV radius, R_c - longest needed link).",
         "",
         "## Per family",

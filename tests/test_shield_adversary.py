@@ -107,6 +107,7 @@ def test_report_tables_and_failures():
         _record("flee", True, 0, (6, "integrator", 0.0)),
         _record("flee", False, 1, (6, "integrator", 0.0)),
     ]
+    records[2]["counts"]["occlusion"] = 7  # soft: counted, not a failure
     summary = sa.summarize(records)
     uav = summary["families"]["seek-uav"]["shielded"]
     assert uav["per_million"]["uav"] == pytest.approx(2000.0)
@@ -114,7 +115,7 @@ def test_report_tables_and_failures():
     assert summary["failures"] == [["seek-uav", "n3-lag-drop0.5"]]
     report = sa.format_report(summary, {"command": "python -m x", "worlds": 2, "steps": 5})
     assert "| seek-uav (shielded) | 1000 | 2000 | 2000 | 0 |" in report
-    assert "| n6-integrator-drop0 | 1000 |" in report
+    assert "| n6-integrator-drop0 | 1000 | 0 | 0 | 0 | 0 | 0 | 0 | 7000 |" in report
     assert "- seek-uav in n3-lag-drop0.5" in report
     assert "fallback: 100" in report
 
