@@ -703,3 +703,38 @@ def test_a_uav_pinned_low_climbs_over_the_box_that_hides_the_car(seed, climb):
         hidden.append(segment_hits_boxes(p, q, centers, half).any())
     last_second = hidden[-int(1.0 / DT) :]
     assert not any(last_second) if climb else all(last_second)
+
+
+def test_the_team_certificate_climbs_over_the_occluder_as_each_uav_alone():
+    """`onboard.certify_team`'s settling (`onboard._settle`) makes the relaxed certificates of
+    pinned UAVs again over the top, as `SafetyFilter.certify` does for one: the same action and
+    status for every UAV of a batch of the pinned cases and one UAV in free air."""
+    from types import SimpleNamespace
+
+    from uavtrack_env.onboard import _settle
+
+    cbf = CBFConfig(occlusion_model="moving-target", occlusion_point="edges").resolve()
+    f = SafetyFilter(cbf=cbf)
+    contexts, u = [], []
+    for seed in range(4):
+        p, q, centers, half, side = pinned_low(np.random.default_rng(900 + seed))
+        contexts.append(SafetyContext(
+            position=p, yaw=0.0, target_position=q, target_heading=0.0,
+            obstacle_centers=centers, obstacle_half_extents=half,
+        ))  # fmt: skip
+        u.append(cam_u([0.0, side, -0.3], 0.0))
+    contexts.append(ctx_with(target_position=[12.0, 0.0, 0.75]))
+    u.append(cam_u([1.0, 0.0, 0.0], 0.4))
+    u = np.array(u)
+    agents = [SimpleNamespace(filter=f, context=lambda c=c: c) for c in contexts]
+    raw = f.certify_many(
+        u, np.array([c.yaw for c in contexts]), np.zeros((len(u), 3)),
+        [f.rows(c) for c in contexts], [None] * len(u),
+    )  # fmt: skip
+    assert raw.relaxed[:4].all()
+    team = _settle(agents, u, raw)
+    for j, ctx in enumerate(contexts):
+        alone, report = f.certify(u[j], ctx)
+        np.testing.assert_array_equal(team.action[j], alone)
+        assert team.report(j).status == report.status
+    assert [team.report(j).status for j in range(4)] == ["optimal"] * 4  # over the top
