@@ -28,7 +28,11 @@ Layers, each tried only if the previous one cannot give an answer:
    Connectivity is therefore given up only where it conflicts with the collision and altitude
    rows, never for occlusion. Each runs only after the layer before it was infeasible, so a
    family's slack is zero whenever a solution without it exists (up to the exactness of the L1
-   penalty, `soft_penalty` far above the rows' multipliers).
+   penalty, `soft_penalty` far above the rows' multipliers). A relaxed certificate that slacks
+   the row of a box its sight line goes through is made again with that row leading out over
+   the box's top (`SafetyFilter.climb_over_occluders`): the least-angle way out is often
+   sideways, along a vertical edge whose gradient is level, and a box beside a UAV flying low
+   can block it where climbing would clear the line.
 4. fallbacks by priority: the rows whose geometry is known are never traded for rows built on
    an estimate. The car's row (a UKF estimate) is slacked first (weight `hard_penalty` / 100),
    then the other UAVs' rows (`hard_penalty`) with the floor and obstacle rows still hard, then
