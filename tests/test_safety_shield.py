@@ -714,7 +714,7 @@ def test_the_team_certificate_climbs_over_the_occluder_as_each_uav_alone():
     from uavtrack_env.onboard import _settle
 
     cbf = CBFConfig(occlusion_model="moving-target", occlusion_point="edges").resolve()
-    f = SafetyFilter(cbf=cbf)
+    f = SafetyFilter(cbf=cbf, climb_over_occluders=True)
     contexts, u = [], []
     for seed in range(4):
         p, q, centers, half, side = pinned_low(np.random.default_rng(900 + seed))

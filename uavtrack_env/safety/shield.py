@@ -28,11 +28,12 @@ Layers, each tried only if the previous one cannot give an answer:
    Connectivity is therefore given up only where it conflicts with the collision and altitude
    rows, never for occlusion. Each runs only after the layer before it was infeasible, so a
    family's slack is zero whenever a solution without it exists (up to the exactness of the L1
-   penalty, `soft_penalty` far above the rows' multipliers). A relaxed certificate that slacks
-   the row of a box its sight line goes through is made again with that row leading out over
-   the box's top (`SafetyFilter.climb_over_occluders`): the least-angle way out is often
-   sideways, along a vertical edge whose gradient is level, and a box beside a UAV flying low
-   can block it where climbing would clear the line.
+   penalty, `soft_penalty` far above the rows' multipliers). With
+   `ShieldOptions.climb_over_occluders`, a relaxed certificate that slacks the row of a box its
+   sight line goes through is made again with that row leading out over the box's top
+   (`SafetyFilter.climb_over_occluders`): the least-angle way out is often sideways, along a
+   vertical edge whose gradient is level, and a box beside a UAV flying low can block it where
+   climbing would clear the line.
 4. fallbacks by priority: the rows whose geometry is known are never traded for rows built on
    an estimate. The car's row (a UKF estimate) is slacked first (weight `hard_penalty` / 100),
    then the other UAVs' rows (`hard_penalty`) with the floor and obstacle rows still hard, then
@@ -178,11 +179,13 @@ class ShieldOptions:
     (`barrier_rows.make_way`), so that the other UAVs back off and let it out over the car
     instead of pinning it there with their half of the pair row. A courtesy: a fallback keeps
     it only where it costs no hard row (`SafetyFilter.settle`)."""
-    climb_over_occluders: bool = True
+    climb_over_occluders: bool = False
     """Not in the paper: a relaxed certificate that slacks the row of a box its sight line goes
-    through is made again with that row's way out over the box's top, and kept where it leaves
-    less occlusion slack and keeps every other row (`SafetyFilter.climb_over_occluders`).
-    Occlusion point 'edges' only."""
+    through is made again with that row's way out over the box's top, and kept where its line
+    leaves the box sooner and it keeps every other row (`SafetyFilter.climb_over_occluders`).
+    Occlusion point 'edges' only. Off by default: it frees a UAV pinned low beside a box, but on
+    the adversary harness's dense worlds the car was occluded more often with it
+    (docs/safety.md)."""
 
     def __post_init__(self) -> None:
         f = _Fields(self)
@@ -489,13 +492,14 @@ class SafetyFilter:
         """``done`` = a relaxed certificate of ``u`` on ``rows(ctx)``; if it slacks an occlusion
         row whose sight line goes through its box, the certificate again with such rows leading
         out over their box's top (`RowBuilder` ``over_the_top``). It replaces ``done`` where
-        it leaves less occlusion slack (m/s on unit rows, each certificate on its own rows)
-        and breaks no other row more.
+        its sight line leaves those boxes sooner (`_exit_time`) and it breaks no other row
+        more.
 
         Through a box, a row's point is the least-angle point of the box's outline, often a
         vertical edge: its gradient then has no vertical part, and a UAV low among boxes whose
         sideways way out another box blocks keeps its car hidden, where climbing would clear
-        the line."""
+        the line. Where the sideways way out is open, or the box is tall, the row's own
+        certificate leaves sooner and is kept."""
         rows = done[1].rows
         if not self.may_climb_over_occluders(done[1]):
             return done
@@ -507,7 +511,8 @@ class SafetyFilter:
         over = self.row_builder(ctx, over_the_top=True)
         if not (np.array_equal(over.kind, rows.kind) and np.array_equal(over.index, rows.index)):
             return done  # a row left N_oi (36): not a way out of the same occlusion
-        if np.array_equal(over.A, rows.A):
+        through = (over.A != rows.A).any(axis=1) & occluded
+        if not through.any():
             return done
         t0 = time.perf_counter()
         again = self._certify(u, ctx.yaw, ctx.velocity, over, ctx.neighbour_ids, t0)
@@ -517,9 +522,9 @@ class SafetyFilter:
             or (after[~occluded] > np.maximum(excess[~occluded], 0.0) + tol).any()
         ):
             return done
-        if np.maximum(after[occluded], 0.0).sum() >= np.maximum(excess[occluded], 0.0).sum() - tol:
-            return done
-        return again
+        theta_star = self.cbf.theta_star
+        sooner = _exit_time(over, through, again[0], ctx.yaw, theta_star)
+        return again if sooner < _exit_time(rows, through, done[0], ctx.yaw, theta_star) else done
 
     def climb_over_car(
         self, u: np.ndarray, ctx: SafetyContext, done: tuple[np.ndarray, ShieldReport]
@@ -819,6 +824,21 @@ def _row_excess(rows: CBFRows, u: np.ndarray, yaw: float) -> np.ndarray:
     negative where it keeps it."""
     V = cam_to_world_vec(np.asarray(u[:3], float), yaw)
     return (rows.A @ V - rows.b) / np.maximum(np.linalg.norm(rows.A, axis=1), 1e-12)
+
+
+def _exit_time(
+    rows: CBFRows, through: np.ndarray, u: np.ndarray, yaw: float, theta_star: float
+) -> float:
+    """First-order time (s) until the sight line leaves every box of the occlusion rows
+    ``through`` (boxes it goes through) at the camera-frame command ``u``: the longest of the
+    rows' angles to their outline points, ``-h - theta*``, over their rates ``-A V + drift``
+    (inf where a rate is not positive)."""
+    V = cam_to_world_vec(np.asarray(u[:3], float), yaw)
+    rate = rows.drift[through] - rows.A[through] @ V
+    angle = np.maximum(-rows.h[through] - theta_star, 0.0)
+    if (rate <= 0.0).any():
+        return math.inf
+    return float((angle / rate).max())
 
 
 def _excess(rows: CBFRows, u: np.ndarray, yaw: float) -> np.ndarray:
