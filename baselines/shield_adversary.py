@@ -406,7 +406,8 @@ def mixed(env: Any, rng: np.random.Generator) -> Policy:
     """Each agent follows a different family (a random permutation of `MIXABLE`)."""
     names = [MIXABLE[k] for k in rng.permutation(len(MIXABLE))]
     pick = {a: names[i % len(names)] for i, a in enumerate(env.possible_agents)}
-    policies = {name: FAMILIES[name](env, rng) for name in set(pick.values())}
+    # in the order of first use, not a set's: the families draw from one generator in turn
+    policies = {name: FAMILIES[name](env, rng) for name in dict.fromkeys(pick.values())}
 
     def policy(obs: dict, infos: dict) -> dict[str, np.ndarray]:
         proposals = {name: p(obs, infos) for name, p in policies.items()}

@@ -52,6 +52,38 @@ def test_every_family_returns_valid_actions_for_the_live_agents(small_env, famil
         _obs, _r, _t, _tr, infos = env.step(actions)
 
 
+_MIXED_ACTIONS = """
+import numpy as np
+from baselines import shield_adversary as sa
+env = sa.make_env(sa.WorldSpec(0, 6, "integrator", 0.0, 7), 12, None)
+obs, infos = env.reset(seed=3)
+policy = sa.FAMILIES["mixed"](env, np.random.default_rng(5))
+out = []
+for _ in range(8):
+    actions = policy(obs, infos)
+    out.append(np.concatenate([actions[a] for a in sorted(actions)]))
+    obs, _r, _t, _tr, infos = env.step(actions)
+print(np.concatenate(out).tobytes().hex())
+"""
+
+
+def test_the_mixed_family_is_the_same_in_every_process():
+    """`mixed` builds its families in a fixed order, so that its draws from the one generator
+    do not follow a set's order, which Python's string hashing changes between processes."""
+    import os
+    import subprocess
+    import sys
+
+    runs = []
+    for hash_seed in ("1", "2", "3"):
+        done = subprocess.run(
+            [sys.executable, "-c", _MIXED_ACTIONS], capture_output=True, text=True, check=True,
+            env={**os.environ, "PYTHONHASHSEED": hash_seed},
+        )  # fmt: skip
+        runs.append(done.stdout.strip().splitlines()[-1])
+    assert runs[0] == runs[1] == runs[2]
+
+
 def test_sequence_policy_plays_its_knots_in_equal_pieces(small_env):
     env = small_env
     env.reset(seed=0)
