@@ -705,6 +705,48 @@ def test_a_uav_pinned_low_climbs_over_the_box_that_hides_the_car(seed, climb):
     assert not any(last_second) if climb else all(last_second)
 
 
+@pytest.mark.parametrize(("room", "taller"), [(0.5, 0.0), (0.2, 2.0)])
+@pytest.mark.parametrize("seed", range(2))
+def test_the_climb_is_not_taken_where_the_line_leaves_sooner_sideways(seed, room, taller):
+    """The pinned case of `pinned_low` with the wall ``room`` m further out or the box
+    ``taller`` m taller: the row's own relaxed certificate still moves the line sideways out of
+    the box, sooner than climbing would (first order), and is kept unchanged."""
+    p, q, centers, half, side = pinned_low(np.random.default_rng(900 + seed))
+    centers[1, 1] += side * room
+    centers[0, 2] += taller
+    half[0, 2] += taller
+    cbf = CBFConfig(occlusion_model="moving-target", occlusion_point="edges").resolve()
+    ctx = SafetyContext(
+        position=p, yaw=0.0, target_position=q, target_heading=0.0,
+        obstacle_centers=centers, obstacle_half_extents=half,
+    )  # fmt: skip
+    nominal = cam_u([0.0, side, -0.3], 0.0)
+    plain, report = SafetyFilter(cbf=cbf).certify(nominal, ctx)
+    assert report.status == "relaxed"
+    climbing, _ = SafetyFilter(cbf=cbf, climb_over_occluders=True).certify(nominal, ctx)
+    np.testing.assert_array_equal(climbing, plain)
+
+
+def test_exit_time_is_the_longest_angle_over_its_rate():
+    """`shield._exit_time`: rows through boxes at h = -theta* - angle with rates
+    -A V + drift; the longest angle / rate, inf if a rate is not positive."""
+    from uavtrack_env.safety.cbf import OCCLUSION, CBFRows
+    from uavtrack_env.safety.shield import _exit_time
+
+    ts, yaw = 0.5, 0.3
+    three = np.ones(3)
+    rows = CBFRows(
+        A=np.array([[0.0, 0.0, -0.2], [-0.1, 0.0, 0.0], [0.0, 0.0, 0.0]]),
+        b=0.0 * three, h=-ts - np.array([0.3, 0.1, 0.2]), gamma=0.1 * three,
+        drift=np.array([0.0, 0.05, 0.0]), margin=0.0 * three, kind=np.full(3, OCCLUSION),
+        index=np.arange(3),
+    )  # fmt: skip
+    u = cam_u([1.0, 0.0, 0.5], yaw)  # rates 0.1 and 0.15 rad/s
+    through = np.array([True, True, False])
+    assert _exit_time(rows, through, u, yaw, ts) == pytest.approx(max(0.3 / 0.1, 0.1 / 0.15))
+    assert _exit_time(rows, np.ones(3, bool), u, yaw, ts) == np.inf  # the third: rate 0
+
+
 def test_the_team_certificate_climbs_over_the_occluder_as_each_uav_alone():
     """`onboard.certify_team`'s settling (`onboard._settle`) makes the relaxed certificates of
     pinned UAVs again over the top, as `SafetyFilter.certify` does for one: the same action and
