@@ -566,7 +566,8 @@ def _settle(agents: Sequence[OnboardAgent], u: np.ndarray, done: Certificates) -
     an occluder (`SafetyFilter.may_climb_over_occluders`; the others' certificates unchanged)."""
     retry = np.flatnonzero(done.fallback).tolist()
     for j in np.flatnonzero(done.relaxed).tolist():
-        if agents[j].filter.may_climb_over_occluders(done.report(j)):
+        shield = agents[j].filter
+        if shield.climbs_over_occluders and shield.may_climb_over_occluders(done.report(j)):
             retry.append(j)
     if not retry:
         return done

@@ -345,9 +345,10 @@ class SafetyFilter:
             accel_bound=self.options.accel_bound if self.options.lag_tau > 0.0 else 0.0,
             make_way=self.options.make_way,
         )
-        self._climbs_over = (
+        self.climbs_over_occluders = (
             self.options.climb_over_occluders and self.row_builder.climbs_over_occluders
         )
+        """`climb_over_occluders` is on (`ShieldOptions.climb_over_occluders`, 'edges' rows)."""
         self._lb3 = np.full(3, -self.v_max)
         self._ub3 = np.full(3, self.v_max)
         opt = self.options
@@ -482,7 +483,7 @@ class SafetyFilter:
         """A relaxed certificate whose rows hold an occlusion row at or below -theta*, where a
         sight line through its box has it (`climb_over_occluders` may then change it)."""
         rows = report.rows
-        if report.status != "relaxed" or rows is None or not self._climbs_over:
+        if report.status != "relaxed" or rows is None or not self.climbs_over_occluders:
             return False
         return bool((rows.h[rows.kind == OCCLUSION] <= -self.cbf.theta_star).any())
 
