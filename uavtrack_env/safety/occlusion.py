@@ -109,15 +109,12 @@ def _occluder_point(p, n, reach, c, half, mode):  # pragma: no cover (compiled)
     # from a UAV inside the box no face faces it and every edge stays a candidate
     outline = inside and not (np.abs(p - c) <= half).all()
     over = inside and mode == OVER_THE_TOP
-    best_cos = -np.inf
-    for step in range(24):  # a second sweep only if the first found no top-face edge
-        k = step % 12
-        if step == 12:
-            if best_cos > -np.inf or not over:
-                break
-            over = False
-        if (outline and not _on_outline(p, c, half, k)) or (over and not _on_top(k)):
+    best_cos, top_cos = -np.inf, -np.inf
+    top = np.empty(3)
+    for k in range(12):
+        if outline and not _on_outline(p, c, half, k):
             continue
+        on_top = over and _on_top(k)
         ax = _EDGE_AXIS[k]
         s0 = c[0] + _EDGE_START[k, 0] * half[0]
         s1 = c[1] + _EDGE_START[k, 1] * half[1]
@@ -142,7 +139,11 @@ def _occluder_point(p, n, reach, c, half, mode):  # pragma: no cover (compiled)
                 best_cos = cos
                 out[0], out[1], out[2] = s0, s1, s2
                 out[ax] += t
-    return out, inside
+            if on_top and cos > top_cos:
+                top_cos = cos
+                top[0], top[1], top[2] = s0, s1, s2
+                top[ax] += t
+    return (top if top_cos > -np.inf else out), inside
 
 
 @numba.njit(cache=True)
