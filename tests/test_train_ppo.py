@@ -94,6 +94,8 @@ def test_bad_arguments(tmp_path):
         ppo.last_checkpoint(tmp_path)
     with pytest.raises(ValueError, match="--bc-workers must be >= 1"):
         ppo.parse_args(["--out", str(tmp_path), "--bc-workers", "0"])
+    with pytest.raises(ValueError, match=r"--bc-schedule takes one of .*'linear'"):
+        ppo.parse_args(["--out", str(tmp_path), "--bc-schedule", "linear"])
 
 
 def dive(obs, infos):

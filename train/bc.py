@@ -136,6 +136,10 @@ def _episode(
     return obs_rows, act_rows
 
 
+SCHEDULES = ("cosine", "constant")
+"""`pretrain`'s learning-rate schedules."""
+
+
 def actor_parameters(policy: Any, with_log_std: bool = True) -> list:
     """The parameters that define an SB3 ActorCriticPolicy's action distribution."""
     params = [
@@ -161,6 +165,7 @@ def pretrain(
     epochs: int = 30,
     batch_size: int = 256,
     learning_rate: float = 1e-3,
+    schedule: str = "cosine",
     seed: int = 0,
     progress: bool = True,
 ) -> dict[str, float]:
@@ -169,12 +174,16 @@ def pretrain(
     With a ``normalizer`` (SB3 VecNormalize), its observation statistics are first set to the
     demonstrations' mean and variance, so that PPO starts from the inputs the actor was fitted on.
     Loss: mean over dimensions of ((mean - action) / std(action))^2, so that a loss of 1 means
-    "no better than the average action".
+    "no better than the average action". ``schedule``: "cosine" anneals the learning rate to 0 over
+    the epochs, so the actor kept is a converged one rather than wherever the last constant-rate
+    step left it; "constant" keeps ``learning_rate``.
     """
     import torch
 
     if epochs < 1:
         raise ValueError(f"epochs must be >= 1, got {epochs}")
+    if schedule not in SCHEDULES:
+        raise ValueError(f"schedule must be one of {SCHEDULES}, got {schedule!r}")
     if len(obs) != len(actions) or len(obs) < batch_size:
         raise ValueError(f"need >= {batch_size} (obs, action) pairs, got {len(obs)}")
     if normalizer is not None:
@@ -191,6 +200,9 @@ def pretrain(
     n_val = max(1, len(x) // 10)
     perm = torch.randperm(len(x), generator=gen)
     val, train = perm[:n_val], perm[n_val:]
+    steps = epochs * -(-len(train) // batch_size)
+    cosine = schedule == "cosine"
+    anneal = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=steps) if cosine else None
 
     def loss_of(idx: torch.Tensor) -> torch.Tensor:
         return cloning_loss(policy, x[idx], y[idx], scale)
@@ -204,6 +216,8 @@ def pretrain(
             opt.zero_grad()
             loss.backward()
             opt.step()
+            if anneal is not None:
+                anneal.step()
         with torch.no_grad():
             v = float(loss_of(val))
         first = v if first is None else first

@@ -70,6 +70,7 @@ from uavtrack_env.presets import (
 )
 from uavtrack_env.provenance import cli_command, config_record
 
+from .bc import SCHEDULES as BC_SCHEDULES
 from .intervention import checked_coef
 from .lagrangian import LagrangianConfig
 from .world import WORLD_FIELDS, TrainingWorld
@@ -164,6 +165,13 @@ class Args:
         metadata={"help": "expert episodes for a behaviour-cloning warm start (0: from scratch)"},
     )
     bc_epochs: int = field(default=30, metadata={"help": "behaviour-cloning epochs"})
+    bc_schedule: str = field(
+        default="cosine",
+        metadata={
+            "help": "behaviour-cloning learning rate: 'cosine' (annealed to 0 over the epochs) "
+            "or 'constant'"
+        },
+    )
     bc_workers: int = field(
         default=1,
         metadata={"help": "processes recording the expert episodes (the same demos for any)"},
@@ -294,6 +302,8 @@ def make_args(**given: Any) -> Args:
         raise ValueError("--bc-anchor needs demonstrations: set --bc-episodes")
     if args.dagger_rounds < 0 or args.dagger_episodes < 1:
         raise ValueError("--dagger-rounds must be >= 0 and --dagger-episodes >= 1")
+    if args.bc_schedule not in BC_SCHEDULES:
+        raise ValueError(f"--bc-schedule takes one of {BC_SCHEDULES}, got {args.bc_schedule!r}")
     if args.dagger_rounds > 0 and args.bc_episodes < 1:
         raise ValueError("--dagger-rounds refines a cloned actor: set --bc-episodes")
     if set(args.eval_scenarios) - set("ABC"):
@@ -615,6 +625,7 @@ def _clone_expert(args: Args, model, vec, demos: tuple, ckdir: Path) -> dict:
         obs,
         actions,
         epochs=args.bc_epochs,
+        schedule=args.bc_schedule,
         seed=args.seed,
         progress=args.progress,
     )
