@@ -136,7 +136,7 @@ def _episode(
     return obs_rows, act_rows
 
 
-SCHEDULES = ("cosine", "constant")
+SCHEDULES = ("constant", "cosine")
 """`pretrain`'s learning-rate schedules."""
 
 
@@ -165,7 +165,7 @@ def pretrain(
     epochs: int = 30,
     batch_size: int = 256,
     learning_rate: float = 1e-3,
-    schedule: str = "cosine",
+    schedule: str = "constant",
     seed: int = 0,
     progress: bool = True,
 ) -> dict[str, float]:
@@ -174,9 +174,9 @@ def pretrain(
     With a ``normalizer`` (SB3 VecNormalize), its observation statistics are first set to the
     demonstrations' mean and variance, so that PPO starts from the inputs the actor was fitted on.
     Loss: mean over dimensions of ((mean - action) / std(action))^2, so that a loss of 1 means
-    "no better than the average action". ``schedule``: "cosine" anneals the learning rate to 0 over
-    the epochs, so the actor kept is a converged one rather than wherever the last constant-rate
-    step left it; "constant" keeps ``learning_rate``.
+    "no better than the average action". ``schedule``: "constant" keeps ``learning_rate``; "cosine"
+    anneals it to 0 over the epochs, so the actor kept is a converged one rather than wherever the
+    last constant-rate step left it.
     """
     import torch
 
