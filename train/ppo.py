@@ -146,6 +146,13 @@ class Args:
     clip_range: float = field(default=0.2, metadata={"help": "PPO clip range"})
     ent_coef: float = field(default=0.0, metadata={"help": "entropy bonus"})
     net_arch: str = field(default="128,128", metadata={"help": "hidden sizes of pi and vf"})
+    linear_skip: bool = field(
+        default=False,
+        metadata={
+            "help": "the actor's mean adds a linear map of the observation to its MLP's output "
+            "(train.sb3_ppo.LinearSkipPolicy)"
+        },
+    )
     frame_stack: int = field(
         default=1,
         metadata={
@@ -573,7 +580,7 @@ def model_and_env(args: Args, lambda_init: float = 0.0):
     statistics and multiplier), else a new model with the command line's hyperparameters."""
     from stable_baselines3.common.vec_env import VecNormalize
 
-    from train.sb3_ppo import OPTIMIZER_KWARGS, SharedPPO
+    from train.sb3_ppo import OPTIMIZER_KWARGS, LinearSkipPolicy, SharedPPO
 
     out = args.out
     vec = make_vec_env(args, lambda_init)
@@ -587,7 +594,7 @@ def model_and_env(args: Args, lambda_init: float = 0.0):
         return model, vec
     hidden = [int(h) for h in args.net_arch.split(",") if h]
     model = SharedPPO(
-        "MlpPolicy",
+        LinearSkipPolicy if args.linear_skip else "MlpPolicy",
         vec,
         n_steps=args.n_steps,
         batch_size=args.batch_size,
