@@ -36,7 +36,8 @@ in each round the cloned actor acts (through the shield with ``--shield``) on
 ``--dagger-episodes`` training worlds, the expert labels every state it visits, and the actor is
 fitted again on all labels (kept in DIR/dagger.npz; the anchor then uses them all).
 ``--frame-stack K`` feeds the policy the last K observations (`train.frames`): one image shows
-where the car is, two show how it moves. With
+where the car is, two show how it moves. ``--linear-skip`` adds a linear map of the observation
+to the actor's MLP output (`train.sb3_ppo.LinearSkipPolicy`). With
 ``--shield``, ``--intervention-penalty K`` charges K per m/s of the shield's correction
 (`train.intervention`). The recipe of docs/results/rl-training.md:
 
