@@ -65,9 +65,9 @@ class LinearSkipPolicy(ActorCriticPolicy):
 
     A tanh MLP fitted to the expert saturates outside the states it was fitted on, so a UAV that
     drifts further from its reference than any demonstration gets a command of no particular
-    sign. The linear part is a fitted feedback on the observation that keeps its sign at any
-    distance: it grows with the error while the MLP's part stays bounded. The value network is
-    SB3's.
+    sign. The linear part is a fitted feedback that keeps growing with the observation (up to
+    VecNormalize's clip) where the MLP's part stays bounded. The value network is SB3's.
+    docs/results/rl-training.md measures what it changes.
     """
 
     def _build_mlp_extractor(self) -> None:
