@@ -8,25 +8,14 @@ import pytest
 
 pytest.importorskip("stable_baselines3")
 
-import gymnasium
 import torch
 from stable_baselines3 import PPO
 from stable_baselines3.common.vec_env import DummyVecEnv
 
 from baselines.compare import load_policy
+from tests.test_train_bc import _Box
 from train.ppo import make_args, model_and_env
 from train.sb3_ppo import LinearSkipPolicy, SharedPPO
-
-
-class _Box(gymnasium.Env):
-    observation_space = gymnasium.spaces.Box(-10, 10, (5,), np.float32)
-    action_space = gymnasium.spaces.Box(-1, 1, (2,), np.float32)
-
-    def reset(self, *, seed=None, options=None):
-        return np.zeros(5, np.float32), {}
-
-    def step(self, action):
-        return np.zeros(5, np.float32), 0.0, True, False, {}
 
 
 def _mean(model, x: np.ndarray) -> np.ndarray:
