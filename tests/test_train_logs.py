@@ -110,6 +110,18 @@ def test_both_trainers_default_to_the_same_world():
         ppo.parse_args(["--out", "x", "--terminate-on-collision", "sometimes"])
 
 
+def test_image_weight_reaches_the_reward_weights():
+    """``--image-weight`` sets Q_s's x1 and x2 weights of the reward (eq. 18) and keeps x3's and
+    psi's (Table III); a negative weight is refused, naming the field."""
+    from uavtrack_env.config import EnvConfig
+
+    world = ppo.world_settings(ppo.parse_args(["--out", "x", "--image-weight", "30"]))
+    assert EnvConfig.from_kwargs(**world).reward.q == (30.0, 30.0, 100.0, 1.0)
+    assert EnvConfig.from_kwargs(**TrainingWorld().env_kwargs()).reward.q == (1.0, 1.0, 100.0, 1.0)
+    with pytest.raises(ValueError, match="q"):
+        ppo.parse_args(["--out", "x", "--image-weight", "-1"])
+
+
 def test_world_density_options_reach_the_random_worlds():
     args = ppo.parse_args(
         ["--out", "x", "--min-obstacles", "24", "--max-obstacles", "48", "--corridor", "1.5"]

@@ -138,6 +138,9 @@ class Args:
     collision_penalty: float = field(
         default=TrainingWorld.collision_penalty, metadata=_WORLD_HELP["collision_penalty"]
     )
+    image_weight: float = field(
+        default=TrainingWorld.image_weight, metadata=_WORLD_HELP["image_weight"]
+    )
     n_steps: int = field(default=256, metadata={"help": "PPO rollout length per row"})
     batch_size: int = field(default=512, metadata={"help": "PPO minibatch size"})
     n_epochs: int = field(default=10, metadata={"help": "PPO epochs per rollout"})

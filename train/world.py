@@ -43,6 +43,13 @@ class TrainingWorld:
         default=_REWARD.collision_penalty,
         metadata={"help": "reward subtracted on each step a UAV is in collision"},
     )
+    image_weight: float = field(
+        default=_REWARD.q[0],
+        metadata={
+            "help": "reward weight on each image coordinate's error (Q_s's x1 and x2, Table III: "
+            "1; x3's is 100)"
+        },
+    )
     start_offset: float = field(
         default=3.0, metadata={"help": "UAV start offset from formation, per axis (m)"}
     )
@@ -68,7 +75,11 @@ class TrainingWorld:
             "max_cycles": self.max_cycles,
             "terminate_on_collision": self.terminate_on_collision,
             "dynamics": {"model": self.dynamics},
-            "reward": {"shape": self.reward_shape, "collision_penalty": self.collision_penalty},
+            "reward": {
+                "shape": self.reward_shape,
+                "collision_penalty": self.collision_penalty,
+                "q": (self.image_weight, self.image_weight, *_REWARD.q[2:]),
+            },
             "random_world": {
                 "start_offset": self.start_offset,
                 "start_heading_offset": self.start_heading_offset,
