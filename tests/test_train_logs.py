@@ -118,8 +118,9 @@ def test_image_weight_reaches_the_reward_weights():
     world = ppo.world_settings(ppo.parse_args(["--out", "x", "--image-weight", "30"]))
     assert EnvConfig.from_kwargs(**world).reward.q == (30.0, 30.0, 100.0, 1.0)
     assert EnvConfig.from_kwargs(**TrainingWorld().env_kwargs()).reward.q == (1.0, 1.0, 100.0, 1.0)
-    with pytest.raises(ValueError, match="q"):
-        ppo.parse_args(["--out", "x", "--image-weight", "-1"])
+    for bad in ("-1", "nan"):
+        with pytest.raises(ValueError, match="image_weight"):
+            ppo.parse_args(["--out", "x", "--image-weight", bad])
 
 
 def test_world_density_options_reach_the_random_worlds():

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import math
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -66,6 +67,14 @@ class TrainingWorld:
         default=_RANDOM.corridor,
         metadata={"help": "half-width (m) of the car's path kept free of obstacles"},
     )
+
+    def __post_init__(self) -> None:
+        # a derived env field: name the option, not RewardConfig.q[0]
+        if not (math.isfinite(self.image_weight) and self.image_weight >= 0):
+            raise ValueError(
+                f"image_weight (--image-weight) must be a finite number >= 0, got "
+                f"{self.image_weight}"
+            )
 
     def env_kwargs(self) -> dict[str, Any]:
         """Keyword arguments of ``uavtrack_v0.parallel_env`` (checked by `EnvConfig`)."""
