@@ -237,3 +237,61 @@ def test_dagger_labels_the_learners_states_with_the_experts_actions(tmp_path, ca
         expert.applied(acts)
     own = np.concatenate([acting({"uav_0": row}, {})["uav_0"][None] for row in obs])
     assert not np.allclose(labels, own)  # the expert's actions, not the learner's
+
+
+class _Ramp(_Box):
+    """Observations that grow every step, so running statistics would move."""
+
+    t = 0.0
+
+    def step(self, action):
+        self.t += 1.0
+        return np.full(5, self.t, np.float32), 1.0, False, False, {}
+
+
+def test_frozen_observation_statistics_stay_put_and_survive_a_save(tmp_path):
+    vec = VecNormalize(DummyVecEnv([_Ramp]))
+    vec.reset()
+    for _ in range(3):
+        vec.step(np.zeros((1, 2), np.float32))
+    bc.freeze_observation_statistics(vec)
+    mean, var, count = vec.obs_rms.mean.copy(), vec.obs_rms.var.copy(), vec.obs_rms.count
+    returns_count = vec.ret_rms.count
+    for _ in range(5):
+        obs = vec.step(np.zeros((1, 2), np.float32))[0]
+    np.testing.assert_array_equal(vec.obs_rms.mean, mean)
+    np.testing.assert_array_equal(vec.obs_rms.var, var)
+    assert vec.obs_rms.count == count
+    assert vec.ret_rms.count > returns_count  # the reward's statistics still run
+    np.testing.assert_allclose(obs[0], np.clip((8.0 - mean) / np.sqrt(var + 1e-8), -10, 10))
+    bc.freeze_observation_statistics(vec)  # a second freeze keeps the same statistics
+    np.testing.assert_array_equal(vec.obs_rms.mean, mean)
+    vec.save(str(tmp_path / "norm.pkl"))
+    loaded = VecNormalize.load(str(tmp_path / "norm.pkl"), DummyVecEnv([_Ramp]))
+    loaded.reset()
+    loaded.step(np.zeros((1, 2), np.float32))
+    np.testing.assert_array_equal(loaded.obs_rms.mean, mean)
+    # the control: unfrozen statistics move on the same stream
+    moving = VecNormalize(DummyVecEnv([_Ramp]))
+    moving.reset()
+    before = moving.obs_rms.mean.copy()
+    moving.step(np.zeros((1, 2), np.float32))
+    assert not np.array_equal(moving.obs_rms.mean, before)
+
+
+@pytest.mark.slow
+def test_freeze_obs_stats_keeps_the_demonstrations_statistics_through_ppo(tmp_path):
+    import pickle
+
+    out = tmp_path / "run"
+    ppo.main(
+        ["--no-shield", "--timesteps", "384", "--out", str(out), *SMOKE]
+        + ["--bc-episodes", "1", "--bc-epochs", "1", "--freeze-obs-stats"]
+    )
+    with np.load(out / "demos.npz") as d:
+        obs = d["obs"]
+    with (out / "vecnormalize.pkl").open("rb") as f:
+        norm = pickle.load(f)
+    np.testing.assert_allclose(norm.obs_rms.mean, obs.mean(0), rtol=1e-5, atol=1e-7)
+    np.testing.assert_allclose(norm.obs_rms.var, obs.var(0), rtol=1e-4, atol=1e-9)
+    assert norm.obs_rms.count == len(obs)

@@ -21,6 +21,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from stable_baselines3.common.running_mean_std import RunningMeanStd
 from tqdm import tqdm
 
 from uavtrack_env.expert import ExpertPolicy
@@ -134,6 +135,27 @@ def _episode(
     expert.close()
     env.close()
     return obs_rows, act_rows
+
+
+class FrozenMeanStd(RunningMeanStd):
+    """A VecNormalize ``obs_rms`` that keeps its mean and variance: ``update`` does nothing."""
+
+    def update(self, arr: np.ndarray) -> None:
+        pass
+
+
+def freeze_observation_statistics(normalizer: Any) -> None:
+    """Fix ``normalizer``'s (SB3 VecNormalize) observation statistics at their current values,
+    for this run and any resumed from its checkpoints (`train.ppo --freeze-obs-stats`).
+
+    Running statistics follow the states PPO visits, so an actor fitted on the demonstrations'
+    statistics sees its inputs shift with no update of its own."""
+    rms = normalizer.obs_rms
+    if isinstance(rms, FrozenMeanStd):
+        return
+    frozen = FrozenMeanStd(shape=rms.mean.shape)
+    frozen.mean, frozen.var, frozen.count = rms.mean.copy(), rms.var.copy(), rms.count
+    normalizer.obs_rms = frozen
 
 
 SCHEDULES = ("constant", "cosine")

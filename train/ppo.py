@@ -171,6 +171,13 @@ class Args:
     normalize: bool = field(
         default=True, metadata={"help": "VecNormalize observations and rewards"}
     )
+    freeze_obs_stats: bool = field(
+        default=False,
+        metadata={
+            "help": "keep VecNormalize's observation statistics fixed during PPO (after "
+            "cloning: the demonstrations', on which the actor was fitted; train.bc)"
+        },
+    )
     bc_episodes: int = field(
         default=0,
         metadata={"help": "expert episodes for a behaviour-cloning warm start (0: from scratch)"},
@@ -448,6 +455,7 @@ def train(args: Args):
     """Train (or resume) and save; returns the model and its VecEnv."""
     import torch
     from stable_baselines3.common.callbacks import CheckpointCallback
+    from stable_baselines3.common.vec_env import VecNormalize
 
     from .callbacks import StopAtTimesteps, TrainingLog, VideoEvery, progress_callback
     from .lagrangian import LagrangianReward, MultiplierUpdate
@@ -458,6 +466,10 @@ def train(args: Args):
     ckdir.mkdir(parents=True, exist_ok=True)
     previous = _previous_calls(args)
     model, vec = model_and_env(args, previous.get("lagrangian_lambda", 0.0))
+    if args.freeze_obs_stats and isinstance(vec, VecNormalize):
+        from train.bc import freeze_observation_statistics
+
+        freeze_observation_statistics(vec)
     bc_stats: dict = {}
     width = model.observation_space.shape[0]
     demos = demonstrations(args, width) if args.bc_episodes > 0 else None  # loaded once
