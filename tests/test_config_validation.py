@@ -340,6 +340,7 @@ BAD = [
         rf"connectivity_margin must be None .* or {NONNEG}",
     ),
     case(ShieldOptions, "soft_penalty", 0.0, V, rf"soft_penalty must be {POS}"),
+    case(ShieldOptions, "occlusion_price", -1.0, V, rf"occlusion_price must be None .* {POS}"),
     case(ShieldOptions, "hard_penalty", INF, V, rf"hard_penalty must be {POS}"),
     case(
         ShieldOptions, "slack_regularization", -1e-6, V, rf"slack_regularization must be {NONNEG}"

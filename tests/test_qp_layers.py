@@ -68,9 +68,11 @@ FIELDS = ("status", "active", "correction_norm", "slack", "active_rows", "solver
 """The `ShieldReport` fields compared."""
 
 
+@pytest.mark.parametrize("price", [None, 10.0])
 @pytest.mark.parametrize("lag", [False, True])
-def test_compiled_layers_equal_the_python_layers(lag):
+def test_compiled_layers_equal_the_python_layers(lag, price):
     opts = {"lag_tau": 0.15, "accel_bound": 6.0} if lag else {}
+    opts["occlusion_price"] = price
     native, python = SafetyFilter(**opts), SafetyFilter(**opts)
     python._native = None
     assert native._native is not None

@@ -517,6 +517,43 @@ def test_an_occlusion_row_no_velocity_can_keep_does_not_take_the_command(native,
         np.testing.assert_allclose(V, [-1.5, 0.3, 0.0], atol=1e-4)  # slack_regularization
 
 
+@pytest.mark.parametrize("native", [True, False])
+@pytest.mark.parametrize("price", [None, 10.0])
+def test_a_slacked_occlusion_row_moves_the_directions_it_barely_touches_by_its_price(native, price):
+    """An occlusion row that asks for v_x >= 0.5 against an obstacle's row v_x <= 0, with a
+    0.002 component on v_z: no command keeps it, so it takes slack. The nominal descends at
+    1 m/s. With the L1 price at soft_penalty (1000 m/s per m/s of slack) the row's pull on
+    v_z, 1000 x 0.002, turns the descent into a climb; priced in proportion to the nominal's
+    violation (``occlusion_price``, D = 1.5 m/s here) it moves v_z by at most c D 0.002. Either
+    way the row still beats the nominal in its main direction (v_x from -1 to 0)."""
+    from uavtrack_env.safety.cbf import OBSTACLE, OCCLUSION, CBFRows
+
+    f = SafetyFilter(occlusion_price=price)
+    if not native:
+        f._native = None
+    two = np.ones(2)
+    a = np.array([-1.0, 0.0, -0.002])
+    rows = CBFRows(
+        A=np.array([[1.0, 0.0, 0.0], a]), b=np.array([0.0, -0.5]), h=np.array([1.0, 0.0]),
+        gamma=0.1 * two, drift=0.0 * two, margin=0.0 * two,
+        kind=np.array([OBSTACLE, OCCLUSION]), index=np.array([3, 9]),
+    )  # fmt: skip
+    nominal = np.array([-1.0, 0.0, -1.0])
+    out, rep = f.certify_pose(cam_u(nominal, 0.0), 0.0, None, rows)
+    assert rep.status == "relaxed" and list(rep.slack_per_row) == ["occlusion:9"]
+    V = global_v(out, 0.0)
+    assert V[0] == pytest.approx(0.0, abs=1e-6)
+    assert V[1] == pytest.approx(0.0, abs=1e-6)
+    lift = V[2] - nominal[2]
+    if price is None:
+        assert lift == pytest.approx(1e3 * 0.002 / np.linalg.norm(a), rel=1e-3)
+    else:
+        D = (a @ nominal + 0.5) / np.linalg.norm(a)
+        assert 0.0 < lift <= price * D * 0.002 + 1e-9
+    with pytest.raises(ValueError, match="occlusion_price"):
+        SafetyFilter(occlusion_price=0.0)
+
+
 def squeezed(**kw):
     """A UAV 1.9 m from a team-mate on each side along x (inside R_s = 2 m): each pair row
     asks it to move away from its team-mate, so no command keeps both."""

@@ -196,3 +196,29 @@ def test_console_return_is_the_mean_of_the_last_finished_episodes():
     assert "return 2.00 | cost 1.00 (last 2 episodes)" in lines[-1]
     rollout([(5.0, 1.0), (7.0, 1.0)])  # only the last 3 count: 3, 5, 7
     assert "return 5.00 | cost 1.33 (last 3 episodes)" in lines[-1]
+
+
+def test_training_log_records_each_violating_agent_step_with_its_world_and_uav(tmp_path):
+    from types import SimpleNamespace
+
+    from train.callbacks import TrainingLog
+
+    events = tmp_path / "violations.jsonl"
+    log = TrainingLog(every=10**9, echo=None, events=events)
+    log.model = SimpleNamespace(get_env=lambda: SimpleNamespace(n_agents=3))
+    log.num_timesteps = 96
+    log._on_training_start()
+    clean = {"collision": False, "disconnection": False, "occlusion": False}
+    infos = [{"violations": dict(clean)} for _ in range(6)]
+    infos[4]["violations"]["occlusion"] = True  # world 1, UAV 1
+    infos[5] = {"absorbing": True}
+    infos[0]["violations"].update(collision=True, disconnection=True)
+    log.locals = {"infos": infos}
+    log._on_step()
+    lines = [json.loads(x) for x in events.read_text().splitlines()]
+    assert lines == [
+        {"agent_steps": 96, "row": 0, "world": 0, "uav": 0,
+         "violations": ["collision", "disconnection"]},
+        {"agent_steps": 96, "row": 4, "world": 1, "uav": 1, "violations": ["occlusion"]},
+    ]  # fmt: skip
+    assert log.counts["occlusion"] == 1 and log.counts["agent_steps"] == 5

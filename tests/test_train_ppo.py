@@ -63,6 +63,9 @@ def test_smoke_checkpoint_and_resume(tmp_path, shield):
         assert counted["shield_active"] > 0
     else:
         assert counted["shield_active"] == 0
+    events = (out / "violations.jsonl").read_text().splitlines()
+    for name in ("collision", "disconnection", "occlusion"):  # one line per violating agent-step
+        assert sum(name in json.loads(e)["violations"] for e in events) == counted[name]
     if not shield:
         return
     # resume: the env settings come from args.json, the step count continues

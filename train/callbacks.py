@@ -7,9 +7,11 @@ per 1,000); episode returns and costs are per agent (one VecEnv row).
 
 from __future__ import annotations
 
+import json
 import time
 from collections import deque
 from collections.abc import Callable
+from pathlib import Path
 
 import numpy as np
 from stable_baselines3.common.callbacks import BaseCallback
@@ -41,13 +43,19 @@ class TrainingLog(BaseCallback):
     cost are the means over the last ``recent`` finished agent-episodes (SB3's
     ``ep_rew_mean`` convention: a number on every line, not only after rollouts in which
     episodes ended). ``totals`` counts the agent-steps of every violation over the whole call
-    (for args.json)."""
+    (for args.json). With ``events``, every violating agent-step is appended to that JSON-lines
+    file: the agent-steps counter, the row, its world and UAV (row = world x UAVs + UAV) and
+    the violations' names, so that a training violation can be found and replayed."""
 
     def __init__(
-        self, every: int = 10_000, echo: Callable[[str], None] | None = print, recent: int = 100
+        self,
+        every: int = 10_000,
+        echo: Callable[[str], None] | None = print,
+        recent: int = 100,
+        events: Path | None = None,
     ) -> None:
         super().__init__()
-        self.every, self.echo = every, echo
+        self.every, self.echo, self.events = every, echo, events
         self.recent: deque[tuple[float, float]] = deque(maxlen=recent)
         self.totals = dict.fromkeys(COUNTS, 0)
         self.extra: dict[str, Callable[[], float]] = {}
@@ -56,6 +64,7 @@ class TrainingLog(BaseCallback):
 
     def _on_training_start(self) -> None:
         self._last_echo = self.num_timesteps
+        self._uavs = int(getattr(self.training_env, "n_agents", 1))
         self._on_rollout_start()
 
     def _on_rollout_start(self) -> None:
@@ -65,7 +74,7 @@ class TrainingLog(BaseCallback):
         self.t0, self.steps0 = time.perf_counter(), self.num_timesteps
 
     def _on_step(self) -> bool:
-        for info in self.locals["infos"]:
+        for row, info in enumerate(self.locals["infos"]):
             episode = info.get("episode")
             if episode is not None:
                 self.returns.append(float(episode["r"]))
@@ -77,8 +86,16 @@ class TrainingLog(BaseCallback):
             self.counts["agent_steps"] += 1
             for k in VIOLATIONS:
                 self.counts[k] += bool(v[k])
+            if self.events is not None and any(v[k] for k in VIOLATIONS):
+                self._record(row, [k for k in VIOLATIONS if v[k]])
             self.counts["shield_active"] += bool(info.get("shield", {}).get("active", False))
         return True
+
+    def _record(self, row: int, names: list[str]) -> None:
+        world, uav = divmod(row, self._uavs)
+        line = {"agent_steps": self.num_timesteps, "row": row, "world": world, "uav": uav}
+        with self.events.open("a") as f:
+            f.write(json.dumps({**line, "violations": names}) + "\n")
 
     def _on_rollout_end(self) -> None:
         row = self.row()

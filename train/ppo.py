@@ -15,8 +15,10 @@ into DIR: ``tb/``
 (TensorBoard: ``rollout/ep_cost_mean``, ``safety/*_rate``, ``lagrangian/lambda``),
 ``checkpoints/`` (every ``--checkpoint-freq`` agent-steps, with the VecNormalize statistics),
 ``model.zip`` + ``vecnormalize.pkl`` (final), ``args.json`` (every call's steps, time and
-violation counts under ``calls``) and, with ``--evaluate``, ``metrics.json`` (evaluation
-episodes in the schema of ``baselines/evaluate.py``; a resumed run appends). The console shows a
+violation counts under ``calls``), ``violations.jsonl`` (every violating agent-step: when,
+which world and UAV, which violations; `train.callbacks.TrainingLog`) and, with
+``--evaluate``, ``metrics.json`` (evaluation episodes in the schema of ``baselines/evaluate.py``;
+a resumed run appends). The console shows a
 learning-curve line every ``--log-every`` agent-steps. Step counts are agent-steps (SB3's
 ``num_timesteps``: rows x vector steps); ``--timesteps`` stops at the first vector step that
 reaches it. A UAV whose episode ended keeps its row in the absorbing state until its world
@@ -97,6 +99,8 @@ BC_SEED = 50_000
 """Demonstration worlds are seeded BC_SEED + seed + episode, apart from the evaluation seeds."""
 DAGGER_SEED = 60_000
 """DAgger round r's worlds are seeded DAGGER_SEED + seed + r * dagger_episodes + episode."""
+VIOLATIONS_FILE = "violations.jsonl"
+"""DIR's log of every violating training agent-step (a resumed run appends)."""
 
 
 @dataclass
@@ -485,7 +489,10 @@ def train(args: Args):
         save_vecnormalize=True,
     )
     bar, rich_bar = progress_callback(args.progress)
-    log = TrainingLog(args.log_every, echo=_echo(args.progress and not rich_bar))
+    events = out / VIOLATIONS_FILE
+    if args.resume is None:
+        events.unlink(missing_ok=True)
+    log = TrainingLog(args.log_every, echo=_echo(args.progress and not rich_bar), events=events)
     callbacks = [c for c in (ckpt, bar, StopAtTimesteps()) if c is not None]
     penalty = _wrapper(vec, LagrangianReward)
     if penalty is not None:

@@ -49,6 +49,20 @@ def occlusion_factors(kind, h, A, theta_star, most, length):  # pragma: no cover
 
 
 @numba.njit(cache=True)
+def occlusion_price(v_hat, An, bn, scale):  # pragma: no cover (compiled)
+    """The cap on an occlusion row's slack weight in the relaxed QPs:
+    ``scale max(D, 0.1)``, D the nominal ``v_hat``'s largest violation of the unit rows
+    ``An v <= bn`` (m/s); ``scale`` <= 0: no cap (`ShieldOptions.occlusion_price`)."""
+    if scale <= 0.0:
+        return np.inf
+    most = 0.1
+    for j in range(bn.shape[0]):
+        e = An[j, 0] * v_hat[0] + An[j, 1] * v_hat[1] + An[j, 2] * v_hat[2] - bn[j]
+        most = max(most, e)
+    return scale * most
+
+
+@numba.njit(cache=True)
 def _solve(v_hat, An, bn, weights, lb3, ub3, params, settings):  # pragma: no cover (compiled)
     """`SafetyFilter._solve`: (found, v, QP calls)."""
     alpha_v, slack_reg, verify_tol, norm_cuts = params[2], params[3], params[4], int(params[5])
@@ -84,8 +98,11 @@ def solve_layers(
     """The layers of `SafetyFilter._layers` until one gives an answer: (v0, v1, v2, status
     (index into `LAYER_STATUS`), QP calls). ``slack_factors``: each row's factor on its occlusion
     slack weight (`SafetyFilter.slack_factors`); ``params``: soft_penalty, hard_penalty, alpha_v,
-    slack_regularization, verify_tol, norm_cuts; ``settings``: `daqp_native.settings`."""
+    slack_regularization, verify_tol, norm_cuts, and at `P_OCCLUSION_PRICE` the scale of the
+    cap on the occlusion rows' weights (`occlusion_price`); ``settings``:
+    `daqp_native.settings`."""
     soft, hard = params[0], params[1]
+    cap = occlusion_price(v_hat, An, bn, params[P_OCCLUSION_PRICE])
     m = kinds.shape[0]
     occlusion = np.zeros(m, np.bool_)
     connect = np.zeros(m, np.bool_)
@@ -102,12 +119,14 @@ def solve_layers(
     if found:
         return v[0], v[1], v[2], 0, calls
     if occlusion.any():
-        weights = np.where(occlusion, soft * slack_factors, 0.0)
+        weights = np.where(occlusion, np.minimum(soft * slack_factors, cap), 0.0)
         found, v, n = _solve(v_hat, An, bn, weights, lb3, ub3, params, settings)
         calls += n
         if found:
             return v[0], v[1], v[2], 1, calls
-    base = np.where(connect, soft, np.where(occlusion, 1e-2 * soft * slack_factors, 0.0))
+    base = np.where(
+        connect, soft, np.where(occlusion, np.minimum(1e-2 * soft * slack_factors, cap), 0.0)
+    )
     if connect.any():
         found, v, n = _solve(v_hat, An, bn, base, lb3, ub3, params, settings)
         calls += n
@@ -140,6 +159,8 @@ P_V_MAX, P_W_MAX, P_TOL, P_ACCEL_STEP, P_ACTIVE_TOL, P_PRUNE, P_BOUNDS = range(6
 """`certify_changed`'s params after `solve_layers`' six: Table II's v_max and the yaw-rate
 bound, the fast path's tolerance, the lag plant's step box, the active-row tolerance, prune,
 `qp_arrays.triage`'s bounds code."""
+P_OCCLUSION_PRICE = 13
+"""`solve_layers`' scale of the cap on the occlusion rows' slack weights (`occlusion_price`)."""
 OUT_HEAD = 15
 """`certify_changed`'s output: u_safe (4), status code (`LAYER_STATUS`; closed-form answers are
 'optimal'), solver code (0 closed-form, 1 the QP, 2 brake), QP calls, soft slack, hard

@@ -20,10 +20,11 @@ Layers, each tried only if the previous one cannot give an answer:
    if only a bound is violated, its closed-form projection is returned when it is feasible.
 2. hard QP: every row hard ("optimal").
 3. relaxed QPs ("relaxed"): first every row hard but the occlusion rows, which take slack under
-   an L1 penalty, weighted the more the nearer a row's sight line is to its occluder and
-   priced in the rate of its angle (`SafetyFilter.slack_factors`), so that of two conflicting
-   occlusion rows the one about to occlude is kept, and a row no velocity can answer does not
-   take the command from one it can; if that is infeasible too, the connectivity rows take
+   an L1 penalty, weighted the more the nearer a row's sight line is to its occluder and priced
+   in the rate of its angle (`SafetyFilter.slack_factors`), so that of two conflicting occlusion
+   rows the one about to occlude is kept, and a row no velocity can answer does not take the
+   command from one it can (`ShieldOptions.occlusion_price` caps each weight in proportion to
+   how far the command is from the rows); if that is infeasible too, the connectivity rows take
    slack as well, weighted at least 10 times the occlusion rows (100 / `occlusion_urgency`).
    Connectivity is therefore given up only where it conflicts with the collision and altitude
    rows, never for occlusion. Each runs only after the layer before it was infeasible, so a
@@ -110,6 +111,7 @@ from uavtrack_env.safety.qp_layers import (
     certify_changed,
     certify_many,
     occlusion_factors,
+    occlusion_price,
 )
 from uavtrack_env.validation import Fields as _Fields
 
@@ -179,6 +181,14 @@ class ShieldOptions:
     (`barrier_rows.make_way`), so that the other UAVs back off and let it out over the car
     instead of pinning it there with their half of the pair row. A courtesy: a fallback keeps
     it only where it costs no hard row (`SafetyFilter.settle`)."""
+    occlusion_price: float | None = None
+    """Not in the paper: a scale c (per m/s). Each occlusion row's slack weight in the relaxed
+    QPs (`soft_penalty` times its factors, `SafetyFilter.slack_factors`) is capped at
+    ``c max(D, 0.1)``, D the command's largest violation of the unit rows (m/s): the price
+    follows how far the command is from the rows. A row kept against the command still wins
+    (with one row, an exact penalty needs a weight above D), while a row that cannot be kept
+    pushes each direction it barely touches (a component a_k of its unit normal) by at most
+    ``c D a_k`` m/s, not by ``soft_penalty`` times its factors times a_k. None: no cap."""
     climb_over_occluders: bool = False
     """Not in the paper: a relaxed certificate that slacks the row of a box its sight line goes
     through is made again with that row's way out over the box's top, and kept where its line
@@ -195,6 +205,7 @@ class ShieldOptions:
             f.flag(name)
         f.number("connectivity_margin", lo=0, none_means="2.1 dt alpha_v^2")
         f.number("soft_penalty", lo=0, lo_open=True)
+        f.number("occlusion_price", lo=0, lo_open=True, none_means="soft_penalty")
         f.number("hard_penalty", lo=0, lo_open=True)
         f.number("slack_regularization", lo=0)
         f.integer("norm_cuts", lo=0)
@@ -371,6 +382,7 @@ class SafetyFilter:
                 max(opt.tol, 1e-7),
                 opt.prune,
                 self._bounds_code,
+                opt.occlusion_price or 0.0,
             )  # the order of `qp_layers.certify_changed`'s params
             self._native = (np.array(params), daqp_native.settings(_PRIMAL_TOL))
 
@@ -672,15 +684,17 @@ class SafetyFilter:
         (`slack_factors`; None: 1)."""
         calls = 0
         slack_factors = np.ones(len(kinds)) if slack_factors is None else slack_factors
-        for status, weights in self._layers(kinds, slack_factors):
+        cap = occlusion_price(v_hat, An, bn, self.options.occlusion_price or 0.0)
+        for status, weights in self._layers(kinds, slack_factors, cap):
             v, n = self._solve(v_hat, An, bn, weights, lb3, ub3)
             calls += n
             if v is not None:
                 return v, status, self.solver, calls
         return np.zeros(3), "fallback", "brake", calls
 
-    def _layers(self, kinds: np.ndarray, slack_factors: np.ndarray):
-        """(status, slack weight per row; 0 = hard) of each QP layer, in the order tried.
+    def _layers(self, kinds: np.ndarray, slack_factors: np.ndarray, cap: float):
+        """(status, slack weight per row; 0 = hard) of each QP layer, in the order tried;
+        ``cap``: the most an occlusion row's weight may be (`qp_layers.occlusion_price`).
 
         Priorities: the floor and the static obstacles (exact geometry) > the other UAVs
         (messages, with their reachable sets) > the car (an estimate) > connectivity > occlusion.
@@ -693,11 +707,14 @@ class SafetyFilter:
         opt = self.options
         occlusion, connect = kinds == OCCLUSION, kinds == CONNECT
         if occlusion.any():
-            yield "relaxed", np.where(occlusion, opt.soft_penalty * slack_factors, 0.0)
+            yield (
+                "relaxed",
+                np.where(occlusion, np.minimum(opt.soft_penalty * slack_factors, cap), 0.0),
+            )
         base = np.where(
             connect,
             opt.soft_penalty,
-            np.where(occlusion, 1e-2 * opt.soft_penalty * slack_factors, 0.0),
+            np.where(occlusion, np.minimum(1e-2 * opt.soft_penalty * slack_factors, cap), 0.0),
         )
         if connect.any():
             yield "relaxed", base
