@@ -490,8 +490,8 @@ def train(args: Args):
     )
     bar, rich_bar = progress_callback(args.progress)
     events = out / VIOLATIONS_FILE
-    if args.resume is None:
-        events.unlink(missing_ok=True)
+    if args.resume is None or not events.exists():
+        events.write_text("")  # a new run starts an empty log; a resumed one appends
     log = TrainingLog(args.log_every, echo=_echo(args.progress and not rich_bar), events=events)
     callbacks = [c for c in (ckpt, bar, StopAtTimesteps()) if c is not None]
     penalty = _wrapper(vec, LagrangianReward)
