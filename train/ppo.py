@@ -15,15 +15,14 @@ into DIR: ``tb/``
 (TensorBoard: ``rollout/ep_cost_mean``, ``safety/*_rate``, ``lagrangian/lambda``),
 ``checkpoints/`` (every ``--checkpoint-freq`` agent-steps, with the VecNormalize statistics),
 ``model.zip`` + ``vecnormalize.pkl`` (final), ``args.json`` (every call's steps, time and
-violation counts under ``calls``), ``violations.jsonl`` (every violating agent-step: when,
-which world and UAV, which violations; `train.callbacks.TrainingLog`) and, with
-``--evaluate``, ``metrics.json`` (evaluation episodes in the schema of ``baselines/evaluate.py``;
-a resumed run appends). The console shows a
-learning-curve line every ``--log-every`` agent-steps. Step counts are agent-steps (SB3's
-``num_timesteps``: rows x vector steps); ``--timesteps`` stops at the first vector step that
-reaches it. A UAV whose episode ended keeps its row in the absorbing state until its world
-resets: those rows count towards ``--timesteps`` but not towards ``training_violations``'
-``agent_steps``, which counts the steps of UAVs still flying.
+violation counts under ``calls``), ``violations.jsonl`` (every violating agent-step: when, which
+world and UAV, which violations; `train.callbacks.TrainingLog`) and, with ``--evaluate``,
+``metrics.json`` (evaluation episodes in the schema of ``baselines/evaluate.py``; a resumed run
+appends). The console shows a learning-curve line every ``--log-every`` agent-steps. Step counts
+are agent-steps (SB3's ``num_timesteps``: rows x vector steps); ``--timesteps`` stops at the
+first vector step that reaches it. A UAV whose episode ended keeps its row in the absorbing
+state until its world resets: those rows count towards ``--timesteps`` but not towards
+``training_violations``' ``agent_steps``, which counts the steps of UAVs still flying.
 
 The world (`train.world.TrainingWorld`, shared with `train.rllib_ppo`): seeded random worlds, UAVs
 started up to ``--start-offset`` m off formation, and the env's RL defaults: r = exp(-c) (c the

@@ -49,7 +49,7 @@ def occlusion_factors(kind, h, A, theta_star, most, length):  # pragma: no cover
 
 
 @numba.njit(cache=True)
-def occlusion_price(v_hat, An, bn, scale):  # pragma: no cover (compiled)
+def occlusion_weight_cap(v_hat, An, bn, scale):  # pragma: no cover (compiled)
     """The cap on an occlusion row's slack weight in the relaxed QPs:
     ``scale max(D, 0.1)``, D the nominal ``v_hat``'s largest violation of the unit rows
     ``An v <= bn`` (m/s); ``scale`` <= 0: no cap (`ShieldOptions.occlusion_price`)."""
@@ -99,10 +99,10 @@ def solve_layers(
     (index into `LAYER_STATUS`), QP calls). ``slack_factors``: each row's factor on its occlusion
     slack weight (`SafetyFilter.slack_factors`); ``params``: soft_penalty, hard_penalty, alpha_v,
     slack_regularization, verify_tol, norm_cuts, and at `P_OCCLUSION_PRICE` the scale of the
-    cap on the occlusion rows' weights (`occlusion_price`); ``settings``:
+    cap on the occlusion rows' weights (`occlusion_weight_cap`); ``settings``:
     `daqp_native.settings`."""
     soft, hard = params[0], params[1]
-    cap = occlusion_price(v_hat, An, bn, params[P_OCCLUSION_PRICE])
+    cap = occlusion_weight_cap(v_hat, An, bn, params[P_OCCLUSION_PRICE])
     m = kinds.shape[0]
     occlusion = np.zeros(m, np.bool_)
     connect = np.zeros(m, np.bool_)
@@ -160,7 +160,7 @@ P_V_MAX, P_W_MAX, P_TOL, P_ACCEL_STEP, P_ACTIVE_TOL, P_PRUNE, P_BOUNDS = range(6
 bound, the fast path's tolerance, the lag plant's step box, the active-row tolerance, prune,
 `qp_arrays.triage`'s bounds code."""
 P_OCCLUSION_PRICE = 13
-"""`solve_layers`' scale of the cap on the occlusion rows' slack weights (`occlusion_price`)."""
+"""`solve_layers`' scale of the cap on the occlusion rows' weights (`occlusion_weight_cap`)."""
 OUT_HEAD = 15
 """`certify_changed`'s output: u_safe (4), status code (`LAYER_STATUS`; closed-form answers are
 'optimal'), solver code (0 closed-form, 1 the QP, 2 brake), QP calls, soft slack, hard

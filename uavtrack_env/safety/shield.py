@@ -111,7 +111,7 @@ from uavtrack_env.safety.qp_layers import (
     certify_changed,
     certify_many,
     occlusion_factors,
-    occlusion_price,
+    occlusion_weight_cap,
 )
 from uavtrack_env.validation import Fields as _Fields
 
@@ -205,7 +205,7 @@ class ShieldOptions:
             f.flag(name)
         f.number("connectivity_margin", lo=0, none_means="2.1 dt alpha_v^2")
         f.number("soft_penalty", lo=0, lo_open=True)
-        f.number("occlusion_price", lo=0, lo_open=True, none_means="soft_penalty")
+        f.number("occlusion_price", lo=0, lo_open=True, none_means="no cap")
         f.number("hard_penalty", lo=0, lo_open=True)
         f.number("slack_regularization", lo=0)
         f.integer("norm_cuts", lo=0)
@@ -684,7 +684,7 @@ class SafetyFilter:
         (`slack_factors`; None: 1)."""
         calls = 0
         slack_factors = np.ones(len(kinds)) if slack_factors is None else slack_factors
-        cap = occlusion_price(v_hat, An, bn, self.options.occlusion_price or 0.0)
+        cap = occlusion_weight_cap(v_hat, An, bn, self.options.occlusion_price or 0.0)
         for status, weights in self._layers(kinds, slack_factors, cap):
             v, n = self._solve(v_hat, An, bn, weights, lb3, ub3)
             calls += n
@@ -694,7 +694,7 @@ class SafetyFilter:
 
     def _layers(self, kinds: np.ndarray, slack_factors: np.ndarray, cap: float):
         """(status, slack weight per row; 0 = hard) of each QP layer, in the order tried;
-        ``cap``: the most an occlusion row's weight may be (`qp_layers.occlusion_price`).
+        ``cap``: the most an occlusion row's weight may be (`qp_layers.occlusion_weight_cap`).
 
         Priorities: the floor and the static obstacles (exact geometry) > the other UAVs
         (messages, with their reachable sets) > the car (an estimate) > connectivity > occlusion.
