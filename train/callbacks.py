@@ -219,3 +219,30 @@ class VideoEvery(BaseCallback):
             self.next += self.every
             self.record(self, f"step-{self.num_timesteps}")
         return True
+
+
+class CertifiedActions(BaseCallback):
+    """Stores the shield's certified actions in PPO's rollout buffer in place of the proposed
+    ones, with their log-probabilities under the acting policy (`train.ppo --learn-certified`).
+
+    The world executes the certified action, so the advantage belongs to it; trained on the
+    proposed one, PPO credits every proposal the shield maps to the same certified action alike
+    and learns little where the shield acts. SB3 calls callbacks after each vector step and
+    before it stores the step, so the stored arrays are changed in place. Rows without a
+    ``shield`` entry (absorbing rows) keep their action. Not in the paper."""
+
+    def _on_step(self) -> bool:
+        import torch
+
+        infos, actions = self.locals["infos"], self.locals["actions"]
+        rows = [i for i, info in enumerate(infos) if "action" in info.get("shield", {})]
+        if not rows:
+            return True
+        for i in rows:
+            actions[i] = infos[i]["shield"]["action"]
+        policy = self.model.policy
+        with torch.no_grad():
+            dist = policy.get_distribution(self.locals["obs_tensor"][rows])
+            taken = torch.as_tensor(actions[rows], device=policy.device)
+            self.locals["log_probs"][rows] = dist.log_prob(taken)
+        return True

@@ -174,6 +174,13 @@ class Args:
     normalize: bool = field(
         default=True, metadata={"help": "VecNormalize observations and rewards"}
     )
+    learn_certified: bool = field(
+        default=False,
+        metadata={
+            "help": "--shield: PPO learns from the shield's certified actions, which the world "
+            "executes, in place of the proposed ones (train.callbacks.CertifiedActions)"
+        },
+    )
     freeze_obs_stats: bool = field(
         default=False,
         metadata={
@@ -322,6 +329,8 @@ def make_args(**given: Any) -> Args:
             raise ValueError(f"--{name.replace('_', '-')} must be >= 1")
     if args.bc_anchor > 0 and args.bc_episodes < 1:
         raise ValueError("--bc-anchor needs demonstrations: set --bc-episodes")
+    if args.learn_certified and not args.shield:
+        raise ValueError("--learn-certified needs the shield's actions: set --shield")
     if args.dagger_rounds < 0 or args.dagger_episodes < 1:
         raise ValueError("--dagger-rounds must be >= 0 and --dagger-episodes >= 1")
     if args.bc_schedule not in BC_SCHEDULES:
@@ -460,7 +469,13 @@ def train(args: Args):
     from stable_baselines3.common.callbacks import CheckpointCallback
     from stable_baselines3.common.vec_env import VecNormalize
 
-    from .callbacks import StopAtTimesteps, TrainingLog, VideoEvery, progress_callback
+    from .callbacks import (
+        CertifiedActions,
+        StopAtTimesteps,
+        TrainingLog,
+        VideoEvery,
+        progress_callback,
+    )
     from .lagrangian import LagrangianReward, MultiplierUpdate
 
     torch.set_num_threads(args.threads)
@@ -498,6 +513,8 @@ def train(args: Args):
         callbacks.append(MultiplierUpdate(penalty))
         log.extra["lambda"] = lambda: penalty.lam
     callbacks.append(log)
+    if args.learn_certified:
+        callbacks.append(CertifiedActions())
     if args.video_every > 0:
         callbacks.append(VideoEvery(args.video_every, _video_recorder(args, vec)))
     if args.bc_anchor > 0:

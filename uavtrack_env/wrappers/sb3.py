@@ -242,7 +242,8 @@ class VectorSharedPolicyVecEnv(VecEnv):
     ``reward_tracking``, ``reward_effort``, ``action_clipped``) and ``violations`` (the costs as
     flags); not the ParallelEnv's nested per-agent dicts. ``**config`` as for ``vector_env``.
     ``shield``: an `ExpertConfig` or preset name to pass every action through
-    `VectorCBFShield` (rows then also hold ``shield``: ``active``, ``correction_norm``).
+    `VectorCBFShield` (rows then also hold ``shield``: ``active``, ``correction_norm`` and
+    ``action``, the certified action the world applies, normalised).
     """
 
     def __init__(
@@ -307,6 +308,7 @@ class VectorSharedPolicyVecEnv(VecEnv):
         shield = info.get("shield")
         if shield is not None:
             active, correction = shield["active"].tolist(), shield["correction_norm"].tolist()
+            certified = shield["action"]
         live, ends, dead = was_live.tolist(), ended.tolist(), done.tolist()
         time_limit = (trunc & ~term).tolist()
         for k in range(self.n_worlds):
@@ -331,6 +333,7 @@ class VectorSharedPolicyVecEnv(VecEnv):
                     row["shield"] = {
                         "active": bool(active[k][j]),
                         "correction_norm": float(correction[k][j]),
+                        "action": certified[k, j],
                     }
                 if dead[k][j]:
                     row["terminal_observation"] = last[k, j].copy()
