@@ -74,6 +74,7 @@ class TrainingLog(BaseCallback):
         self.t0, self.steps0 = time.perf_counter(), self.num_timesteps
 
     def _on_step(self) -> bool:
+        events: list[str] = []
         for row, info in enumerate(self.locals["infos"]):
             episode = info.get("episode")
             if episode is not None:
@@ -84,18 +85,22 @@ class TrainingLog(BaseCallback):
             if v is None:  # absorbing row of a finished agent
                 continue
             self.counts["agent_steps"] += 1
-            for k in VIOLATIONS:
-                self.counts[k] += bool(v[k])
-            if self.events is not None and any(v[k] for k in VIOLATIONS):
-                self._record(row, [k for k in VIOLATIONS if v[k]])
+            names = [k for k in VIOLATIONS if v[k]]
+            for k in names:
+                self.counts[k] += 1
+            if names and self.events is not None:
+                events.append(self._event(row, names))
             self.counts["shield_active"] += bool(info.get("shield", {}).get("active", False))
+        if events:  # one write per vector step that had violations
+            with self.events.open("a") as f:
+                f.writelines(events)
         return True
 
-    def _record(self, row: int, names: list[str]) -> None:
+    def _event(self, row: int, names: list[str]) -> str:
+        """One line of ``events``."""
         world, uav = divmod(row, self._uavs)
         line = {"agent_steps": self.num_timesteps, "row": row, "world": world, "uav": uav}
-        with self.events.open("a") as f:
-            f.write(json.dumps({**line, "violations": names}) + "\n")
+        return json.dumps({**line, "violations": names}) + "\n"
 
     def _on_rollout_end(self) -> None:
         row = self.row()
