@@ -125,6 +125,7 @@ BAD = [
     case(RewardConfig, "lost_penalty", INF, V, rf"lost_penalty must be {NONNEG}, got inf"),
     case(RewardConfig, "shape", "linear", V, r"shape must be 'cost' or 'exp', got 'linear'"),
     case(RewardConfig, "collision_penalty", INF, V, rf"collision_penalty must be {NONNEG}"),
+    case(RewardConfig, "image_point", "corner", V, r"image_point must be 'center' or 'box'"),
     # ------------------------------------------------------------------ RandomWorldConfig
     case(RandomWorldConfig, "n_obstacles", (16, 8), V, r"ordered range \(lo, hi\) with lo <= hi"),
     case(RandomWorldConfig, "n_obstacles", (1.5, 3), V, rf"n_obstacles\[0\] must be {INT}"),

@@ -103,6 +103,41 @@ def test_collision_penalty_is_charged_once_on_the_colliding_step(make_env, shape
         assert rew["uav_0"] == pytest.approx(base - 50.0 * collided)
 
 
+def _tracking_from_truth(env, infos: dict, point: str) -> dict[str, float]:
+    """q . e^2 of eq. (18) rebuilt from the info's truth: x1, x2 from the pixel error of the
+    chosen point over the focal lengths, x3 and psi from the features and the reference."""
+    cam, q = env.config.camera, np.asarray(env.config.reward.q)
+    out = {}
+    for a, info in infos.items():
+        truth, ref = info["truth"], info["reference"]
+        px = truth["pixel_error"] if point == "box" else truth["center_pixel_error"]
+        e3 = truth["features"][2] - ref[2]
+        e4 = (truth["features"][3] - ref[3] + math.pi) % (2 * math.pi) - math.pi
+        e = np.array([px[0] / cam.fx, px[1] / cam.fy, e3, e4])
+        out[a] = float((q * e**2).sum())
+    return out
+
+
+@pytest.mark.parametrize("point", ["center", "box"])
+def test_image_point_picks_the_point_the_reward_scores(make_env, point):
+    """``reward.image_point``: 'center' scores the projection of the car's centre, 'box' the
+    noise-free bounding box's centre (the point of the RMS metrics), closed form from the
+    info's truth; the two differ, so scoring the wrong point fails."""
+    assert RewardConfig().image_point == "center"
+    env = make_env(scenario="A", reward={"image_point": point, "q": (30.0, 30.0, 100.0, 1.0)})
+    env.reset(seed=0)
+    gaps = []
+    for _ in range(40):
+        _, _, _, _, infos = env.step({a: np.zeros(4, np.float32) for a in env.agents})
+        ours = _tracking_from_truth(env, infos, point)
+        other = _tracking_from_truth(env, infos, "center" if point == "box" else "box")
+        for a, info in infos.items():
+            assert info["measurement"]["detected"]
+            assert -info["reward_tracking"] == pytest.approx(ours[a], rel=1e-9, abs=1e-12)
+            gaps.append(abs(ours[a] - other[a]))
+    assert max(gaps) > 1e-3
+
+
 @pytest.mark.parametrize(
     "kwargs, match",
     [({"shape": "linear"}, "shape must be"), ({"collision_penalty": -1.0}, "collision_penalty")],

@@ -123,6 +123,18 @@ def test_image_weight_reaches_the_reward_weights():
             ppo.parse_args(["--out", "x", "--image-weight", bad])
 
 
+def test_image_point_reaches_the_reward():
+    """``--image-point box`` makes the reward score the bounding box's centre; the default
+    scores the car's centre; an unknown point is refused, naming the field."""
+    from uavtrack_env.config import EnvConfig
+
+    world = ppo.world_settings(ppo.parse_args(["--out", "x", "--image-point", "box"]))
+    assert EnvConfig.from_kwargs(**world).reward.image_point == "box"
+    assert EnvConfig.from_kwargs(**TrainingWorld().env_kwargs()).reward.image_point == "center"
+    with pytest.raises(ValueError, match="image_point"):
+        ppo.parse_args(["--out", "x", "--image-point", "corner"])
+
+
 def test_world_density_options_reach_the_random_worlds():
     args = ppo.parse_args(
         ["--out", "x", "--min-obstacles", "24", "--max-obstacles", "48", "--corridor", "1.5"]

@@ -87,8 +87,9 @@ def test_world_k_equals_a_parallel_env_seeded_s_plus_k(vec, make_env, terminate,
         {"n_uavs": 3, "terminate_on_collision": "agent"},
         {"n_uavs": 1, "terminate_on_collision": "all", "dynamics": {"model": "lag"}},
         {"n_uavs": 4, "n_obstacles_obs": 20, "comms": {"drop_prob": 0.3}},
+        {"n_uavs": 3, "reward": {"image_point": "box", "q": (30.0, 30.0, 100.0, 1.0)}},
     ],
-    ids=["n3", "n1-lag", "n4-more-obstacle-slots-than-obstacles"],
+    ids=["n3", "n1-lag", "n4-more-obstacle-slots-than-obstacles", "n3-box-point-reward"],
 )
 def test_batched_step_equals_world_by_world_across_autoresets(vec, kw):
     """The batched core and the ParallelEnvs stepped one by one give the same arrays, bit for

@@ -144,6 +144,7 @@ class Args:
     image_weight: float = field(
         default=TrainingWorld.image_weight, metadata=_WORLD_HELP["image_weight"]
     )
+    image_point: str = field(default=TrainingWorld.image_point, metadata=_WORLD_HELP["image_point"])
     n_steps: int = field(default=256, metadata={"help": "PPO rollout length per row"})
     batch_size: int = field(default=512, metadata={"help": "PPO minibatch size"})
     n_epochs: int = field(default=10, metadata={"help": "PPO epochs per rollout"})

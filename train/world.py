@@ -51,6 +51,13 @@ class TrainingWorld:
             "1; x3's is 100)"
         },
     )
+    image_point: str = field(
+        default=_REWARD.image_point,
+        metadata={
+            "help": "the image point the reward's x1, x2 errors score: 'center' (the car's "
+            "centre, eq. 18) or 'box' (the bounding box's centre, which Table V's RMS measures)"
+        },
+    )
     start_offset: float = field(
         default=3.0, metadata={"help": "UAV start offset from formation, per axis (m)"}
     )
@@ -88,6 +95,7 @@ class TrainingWorld:
                 "shape": self.reward_shape,
                 "collision_penalty": self.collision_penalty,
                 "q": (self.image_weight, self.image_weight, *_REWARD.q[2:]),
+                "image_point": self.image_point,
             },
             "random_world": {
                 "start_offset": self.start_offset,

@@ -175,6 +175,11 @@ class RewardConfig:
     collision_penalty: float = 10.0
     """Subtracted from the reward of a UAV on each step it is in collision (not in the paper;
     0 with ``defaults="paper"``)."""
+    image_point: str = "center"
+    """Which image point the x1, x2 errors score: 'center', the projection of the car's centre
+    (the feature s of eq. (18)); 'box', the noise-free bounding box's centre, the point Table
+    V's RMS errors measure and the expert's detections give. The two differ by perspective,
+    most for a car seen end-on."""
 
     def __post_init__(self) -> None:
         f = _Fields(self)
@@ -183,6 +188,7 @@ class RewardConfig:
         f.number("lost_penalty", lo=0)
         f.choice("shape", ("cost", "exp"))
         f.number("collision_penalty", lo=0)
+        f.choice("image_point", ("center", "box"))
 
 
 @dataclass(frozen=True)

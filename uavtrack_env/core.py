@@ -230,6 +230,8 @@ class Constants:
     """Input weights of eq. (18) (Table III)."""
     camera: np.ndarray
     """[fx, fy, cu, cv]."""
+    box_point: bool
+    """The reward scores the bounding box's centre (`RewardConfig.image_point`)."""
 
     @classmethod
     def of(cls, cfg: EnvConfig) -> Constants:
@@ -245,7 +247,18 @@ class Constants:
             np.asarray(rc.q, float),
             np.asarray(rc.r, float),
             np.array([cam.fx, cam.fy, cam.cu, cam.cv]),
+            rc.image_point == "box",
         )
+
+
+def scored_features(const: Constants, det: Detections) -> np.ndarray:
+    """The true features (K, n, 4) the reward scores: with ``const.box_point`` x1, x2 are the
+    noise-free bounding box's centre, (u - c_u) / f_x and (v - c_v) / f_y."""
+    if not const.box_point:
+        return det.true_features
+    features = det.true_features.copy()
+    features[..., :2] = (det.box_center - const.camera[2:]) / const.camera[:2]
+    return features
 
 
 def score(
@@ -255,7 +268,7 @@ def score(
     terms of `rewards` (`tracking_term`, `effort_term`, `reward`, `connected`), in one kernel."""
     det, hits = m.detections, m.contacts
     values, flags, disconnected = core_kernels.score(
-        det.true_features, references, det.in_front, det.detected, u, hits["ground"],
+        scored_features(const, det), references, det.in_front, det.detected, u, hits["ground"],
         hits["obstacle"], hits["target"], m.nearest_uav, alive, m.distances,
         det.blocked_fraction, const.q, const.r, FEATURE_ERROR_CAP, const.score_settings,
     )  # fmt: skip
