@@ -29,6 +29,7 @@ def test_paper_defaults_give_minus_the_stage_cost_and_end_the_team(make_env):
     env = make_env(defaults="paper")
     assert env.config.terminate_on_collision == "all"
     assert env.config.reward.collision_penalty == 0.0
+    assert env.config.reward.image_point == "center"  # eq. (18)'s feature
     for rew, infos in _rollout(env, 20):
         for a, r in rew.items():
             assert r == pytest.approx(infos[a]["reward_tracking"] + infos[a]["reward_effort"])
@@ -38,6 +39,7 @@ def test_paper_defaults_give_minus_the_stage_cost_and_end_the_team(make_env):
 def test_rl_defaults_reward_exp_with_a_penalty_and_end_only_the_colliding_uav(make_env):
     env = make_env()
     assert env.config.reward.shape == "exp" and env.config.reward.collision_penalty == 10.0
+    assert env.config.reward.image_point == "box"
     steps = _rollout(env, 40, down_speed=0.29)  # uav_0 hits the ground
     rew, infos = steps[-1]
     assert infos["uav_0"]["violations"]["collision"]
@@ -120,10 +122,10 @@ def _tracking_from_truth(env, infos: dict, point: str) -> dict[str, float]:
 
 @pytest.mark.parametrize("point", ["center", "box"])
 def test_image_point_picks_the_point_the_reward_scores(make_env, point):
-    """``reward.image_point``: 'center' scores the projection of the car's centre, 'box' the
-    noise-free bounding box's centre (the point of the RMS metrics), closed form from the
-    info's truth; the two differ, so scoring the wrong point fails."""
-    assert RewardConfig().image_point == "center"
+    """``reward.image_point``: 'box' (the RL default) scores the noise-free bounding box's
+    centre (the point of the RMS metrics), 'center' the projection of the car's centre; closed
+    form from the info's truth; the two differ, so scoring the wrong point fails."""
+    assert RewardConfig().image_point == "box"
     env = make_env(scenario="A", reward={"image_point": point, "q": (30.0, 30.0, 100.0, 1.0)})
     env.reset(seed=0)
     gaps = []

@@ -124,15 +124,24 @@ def test_image_weight_reaches_the_reward_weights():
 
 
 def test_image_point_reaches_the_reward():
-    """``--image-point box`` makes the reward score the bounding box's centre; the default
-    scores the car's centre; an unknown point is refused, naming the field."""
+    """The reward scores the bounding box's centre by default and the car's centre with
+    ``--image-point center``; an unknown point is refused, naming the field."""
     from uavtrack_env.config import EnvConfig
 
-    world = ppo.world_settings(ppo.parse_args(["--out", "x", "--image-point", "box"]))
-    assert EnvConfig.from_kwargs(**world).reward.image_point == "box"
-    assert EnvConfig.from_kwargs(**TrainingWorld().env_kwargs()).reward.image_point == "center"
+    world = ppo.world_settings(ppo.parse_args(["--out", "x", "--image-point", "center"]))
+    assert EnvConfig.from_kwargs(**world).reward.image_point == "center"
+    assert EnvConfig.from_kwargs(**TrainingWorld().env_kwargs()).reward.image_point == "box"
     with pytest.raises(ValueError, match="image_point"):
         ppo.parse_args(["--out", "x", "--image-point", "corner"])
+
+
+@pytest.mark.parametrize(("saved", "expected"), [({}, "center"), ({"image_point": "box"}, "box")])
+def test_resume_keeps_the_image_point_the_run_trained_with(tmp_path, saved, expected):
+    """A run whose args.json predates ``image_point`` scored the car's centre; ``--resume``
+    keeps that instead of taking the new default."""
+    (tmp_path / "args.json").write_text(json.dumps({"image_weight": 30.0, **saved}))
+    args = ppo.make_args(resume=tmp_path)
+    assert args.image_point == expected and args.image_weight == 30.0 and args.out == tmp_path
 
 
 def test_world_density_options_reach_the_random_worlds():

@@ -309,13 +309,20 @@ def parse_args(argv: list[str] | None = None) -> Args:
     return make_args(**given)
 
 
+OLDER_RUNS = {"image_point": "center"}
+"""What a run whose args.json predates an env-defining field trained with, where that is not
+the field's default (``--resume`` keeps it)."""
+
+
 def make_args(**given: Any) -> Args:
     """`Args` with checks; with ``resume``, the env-defining fields come from its args.json."""
     if given.get("resume") is not None:
         saved = json.loads((Path(given["resume"]) / "args.json").read_text())
         for k in ENV_FIELDS:
-            if k in saved:  # runs of older versions lack the newer fields
+            if k in saved:
                 given[k] = saved[k]
+            elif k in OLDER_RUNS:
+                given[k] = OLDER_RUNS[k]
         given.setdefault("out", Path(given["resume"]))
     args = Args(**given)
     if args.out is None:

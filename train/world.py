@@ -54,8 +54,8 @@ class TrainingWorld:
     image_point: str = field(
         default=_REWARD.image_point,
         metadata={
-            "help": "the image point the reward's x1, x2 errors score: 'center' (the car's "
-            "centre, eq. 18) or 'box' (the bounding box's centre, which Table V's RMS measures)"
+            "help": "the image point the reward's x1, x2 errors score: 'box' (the bounding box's "
+            "centre, which Table V's RMS measures) or 'center' (the car's centre, eq. 18)"
         },
     )
     start_offset: float = field(

@@ -175,11 +175,11 @@ class RewardConfig:
     collision_penalty: float = 10.0
     """Subtracted from the reward of a UAV on each step it is in collision (not in the paper;
     0 with ``defaults="paper"``)."""
-    image_point: str = "center"
-    """Which image point the x1, x2 errors score: 'center', the projection of the car's centre
-    (the feature s of eq. (18)); 'box', the noise-free bounding box's centre, the point Table
-    V's RMS errors measure and the expert's detections give. The two differ by perspective,
-    most for a car seen end-on."""
+    image_point: str = "box"
+    """Which image point the x1, x2 errors score: 'box' (for RL), the noise-free bounding box's
+    centre, the point Table V's RMS errors measure and the expert's detections give; 'center',
+    the projection of the car's centre (the feature s of eq. (18); ``defaults="paper"``). The
+    two differ by perspective, most for a car seen end-on."""
 
     def __post_init__(self) -> None:
         f = _Fields(self)
@@ -362,13 +362,14 @@ ENV_DEFAULTS: dict[str, dict[str, Any]] = {
     "rl": {},
     "paper": {
         "terminate_on_collision": "all",
-        "reward": {"shape": "cost", "collision_penalty": 0.0},
+        "reward": {"shape": "cost", "collision_penalty": 0.0, "image_point": "center"},
     },
 }
 """Named starting points of `EnvConfig.from_kwargs` (``parallel_env(defaults=...)``), as the
 fields they change from the dataclass defaults. 'rl' (default): r = exp(-c) minus a collision
-penalty, a collision ends that UAV only. 'paper': r = -c of eq. (18), a collision ends the
-episode for all (``baselines.evaluate``'s setting)."""
+penalty on the bounding box's centre, a collision ends that UAV only. 'paper': r = -c of eq.
+(18) on the car's centre, a collision ends the episode for all (``baselines.evaluate``'s
+setting)."""
 
 _NESTED = {
     "camera",

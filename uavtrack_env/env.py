@@ -134,8 +134,9 @@ class UAVTrackEnv(ParallelEnv):
     **Reward**: from the NMPC stage cost (18) on the true features (weights Table III),
     c = sum q_k e_k^2 + lost_penalty * not_detected + sum r_k u_k^2: r = exp(-c) in (0, 1] by
     default (for RL: crashing never pays), minus ``reward.collision_penalty`` (10) on each step in
-    collision; the paper's r = -c with ``defaults="paper"`` or ``reward={"shape": "cost"}``. Both
-    parts of -c are in ``info`` (``reward_tracking``, ``reward_effort``).
+    collision, with x1, x2 at the bounding box's centre (the point of the RMS errors); the
+    paper's r = -c on the car's centre with ``defaults="paper"``. Both parts of -c are in
+    ``info`` (``reward_tracking``, ``reward_effort``).
 
     **Cost and violations** (``info[agent]``): ``violations = {collision, disconnection,
     occlusion}`` (bools), ``costs`` the same keys as floats (1.0 when violated this step, else
@@ -152,8 +153,8 @@ class UAVTrackEnv(ParallelEnv):
     Truncated after ``max_cycles`` steps (80 Hz).
 
     **Arguments**: the fields of :class:`uavtrack_env.config.EnvConfig`, over ``defaults``
-    ('rl', or 'paper': r = -c and a collision ends the episode for all, as in the paper's
-    evaluation; `uavtrack_env.config.ENV_DEFAULTS`); unknown names raise.
+    ('rl', or 'paper': r = -c on the car's centre and a collision ends the episode for all, as
+    in the paper's evaluation; `uavtrack_env.config.ENV_DEFAULTS`); unknown names raise.
 
     **Seams**: ``validate_actions(actions)`` runs step()'s checks and scaling without stepping
     (u in SI units, clip flags); ``snapshot()`` returns the true state as a
