@@ -26,8 +26,8 @@ state until its world resets: those rows count towards ``--timesteps`` but not t
 
 The world (`train.world.TrainingWorld`, shared with `train.rllib_ppo`): seeded random worlds, UAVs
 started up to ``--start-offset`` m off formation, and the env's RL defaults: r = exp(-c) (c the
-stage cost of eq. 18) minus a collision penalty, so that ending an episode by crashing never pays,
-and a collision ends that UAV's episode only.
+stage cost of eq. 18 on the bounding box's centre) minus a collision penalty, so that ending an
+episode by crashing never pays, and a collision ends that UAV's episode only.
 
 Warm start from the expert (``--bc-episodes N``): N expert episodes are recorded (in
 ``--bc-workers`` processes; cached in ``--bc-demos``), the actor is fitted to them (checkpoint
@@ -40,11 +40,15 @@ fitted again on all labels (kept in DIR/dagger.npz; the anchor then uses them al
 where the car is, two show how it moves. ``--linear-skip`` adds a linear map of the observation
 to the actor's MLP output (`train.sb3_ppo.LinearSkipPolicy`). With
 ``--shield``, ``--intervention-penalty K`` charges K per m/s of the shield's correction
-(`train.intervention`). The recipe of docs/results/rl-training.md:
+(`train.intervention`). The recipe of docs/results/rl-training.md: DAgger labels once, from a
+run with ``--dagger-rounds 2 --dagger-episodes 60`` on the dense worlds below (its
+DIR/dagger.npz), then each member:
 
-    python -m train.ppo --shield --n-envs 16 --bc-episodes 200 --bc-anchor 10 \
-        --value-warmup 100000 --target-kl 0.01 --learning-rate 5e-5 --log-std-init -3.5 \
-        --timesteps 600000 --out runs/bcppo-shield
+    python -m train.ppo --shield --frame-stack 2 --linear-skip --freeze-obs-stats \
+        --bc-episodes 200 --bc-demos runs/labels/dagger.npz --bc-anchor 0 \
+        --learning-rate 5e-5 --log-std-init -2 --target-kl 0.05 --image-weight 30 \
+        --min-obstacles 24 --max-obstacles 48 --corridor 1.5 --timesteps 3000000 \
+        --seed 1300 --out runs/ppo-shield
 """
 
 from __future__ import annotations
