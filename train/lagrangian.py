@@ -26,8 +26,10 @@ from uavtrack_env.validation import Fields
 class LagrangianConfig:
     """The multiplier's settings (not in the paper: the safe-RL baseline)."""
 
-    cost_limit: float = 1.0
-    """d: the episode cost per agent the policy may spend (violating agent-steps)."""
+    cost_limit: float = 25.0
+    """d: the episode cost per agent the policy may spend (violating agent-steps); 25 is
+    Safety-Gymnasium's budget. On 1200-step episodes a limit of 1 drives lambda past 300, where
+    the penalty outweighs the reward (docs/results/rl-training.md)."""
     lambda_lr: float = 0.05
     """Step size of lambda's gradient ascent per rollout."""
     lambda_init: float = 0.0

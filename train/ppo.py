@@ -3,7 +3,7 @@ or PPO-Lagrangian.
 
     python -m train.ppo --shield --timesteps 200000 --seed 0 --out runs/ppo-shield
     python -m train.ppo --no-shield --timesteps 200000 --seed 0 --out runs/ppo
-    python -m train.ppo --no-shield --lagrangian --cost-limit 1 --out runs/ppo-lag
+    python -m train.ppo --no-shield --lagrangian --cost-limit 25 --out runs/ppo-lag
     python -m train.ppo --timesteps 100000 --resume runs/ppo-shield     # 100k more steps
 
 One policy drives every UAV: each agent of each world is one row of an SB3 VecEnv
