@@ -41,14 +41,13 @@ where the car is, two show how it moves. ``--linear-skip`` adds a linear map of 
 to the actor's MLP output (`train.sb3_ppo.LinearSkipPolicy`). With
 ``--shield``, ``--intervention-penalty K`` charges K per m/s of the shield's correction
 (`train.intervention`). The recipe of docs/results/rl-training.md: DAgger labels once, from a
-run with ``--dagger-rounds 2 --dagger-episodes 60`` on the dense worlds below (its
-DIR/dagger.npz), then each member:
+run with ``--dagger-rounds 2 --dagger-episodes 60 --min-obstacles 24 --max-obstacles 48
+--corridor 1.5`` (its DIR/dagger.npz), then each member on the default random worlds:
 
     python -m train.ppo --shield --frame-stack 2 --linear-skip --freeze-obs-stats \
         --bc-episodes 200 --bc-demos runs/labels/dagger.npz --bc-anchor 0 \
         --learning-rate 5e-5 --log-std-init -2 --target-kl 0.05 --image-weight 30 \
-        --min-obstacles 24 --max-obstacles 48 --corridor 1.5 --timesteps 3000000 \
-        --seed 1300 --out runs/ppo-shield
+        --timesteps 3000000 --seed 1300 --out runs/ppo-shield
 """
 
 from __future__ import annotations
