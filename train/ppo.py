@@ -94,6 +94,9 @@ ENV_FIELDS = (
 )
 """Arguments that define the training env and the policy's input; ``--resume`` takes them from
 the run's args.json."""
+OLDER_RUNS = {"image_point": "center"}
+"""What a run whose args.json predates an env-defining field trained with, where that is not
+the field's default (``--resume`` keeps it)."""
 _WORLD_HELP = {f.name: f.metadata for f in dataclasses.fields(TrainingWorld)}
 BC_STATS = ("bc_samples", "bc_val_loss_first_epoch", "bc_val_loss")
 """What `train.bc.pretrain` reports (kept in args.json across ``--resume``)."""
@@ -310,11 +313,6 @@ def parse_args(argv: list[str] | None = None) -> Args:
     given = {k: v for k, v in vars(ns).items() if v is not None}
     given["set"] = tuple(given.get("set", ()))
     return make_args(**given)
-
-
-OLDER_RUNS = {"image_point": "center"}
-"""What a run whose args.json predates an env-defining field trained with, where that is not
-the field's default (``--resume`` keeps it)."""
 
 
 def make_args(**given: Any) -> Args:
