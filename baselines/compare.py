@@ -6,10 +6,11 @@
 Prints and writes DIR/compare.md (one row per policy and world group: RMS pixel errors,
 collisions, disconnection and occluded steps, shield intervention rate), DIR/details.md (per UAV,
 in the form of Table VI), DIR/config.json and DIR/metrics.json (every episode in the schema of
-`uavtrack_env.runner.run_episode`). The expert and the shield use ``--preset`` (default 'tuned')
-with ``--set`` overrides. The learned policies are read from the output directories of ``python -m
-train.ppo`` (``--ppo``, ``--ppo-shield``, ``--run``) or ``python -m train.rllib_ppo``
-(``--run``); a run trained shielded is evaluated shielded. ``--ensemble DIR DIR ...`` evaluates
+`uavtrack_env.runner.run_episode`). The expert uses ``--preset`` (default 'tuned') with ``--set``
+overrides. The learned policies are read from the output directories of ``python -m train.ppo``
+(``--ppo``, ``--ppo-shield``, ``--run``) or ``python -m train.rllib_ppo`` (``--run``); a run
+trained shielded is evaluated behind the shield it trained with (`run_shield`: its preset and
+``--set``). ``--ensemble DIR DIR ...`` evaluates
 several ``train.ppo`` runs (e.g. seeds) as one policy, the mean of their actions. Episodes use
 evaluate's world (detector noise on; ``--dynamics`` defaults to the paper's single integrator,
 eq. (3), under which the shield's guarantees hold).
@@ -31,7 +32,7 @@ from tqdm import tqdm
 from train.frames import FrameHistory
 from uavtrack_env import uavtrack_v0
 from uavtrack_env.config import DT
-from uavtrack_env.presets import ExpertConfig, add_preset_arguments, expert_config_from
+from uavtrack_env.presets import RL_PRESET, ExpertConfig, add_preset_arguments, expert_config_from
 from uavtrack_env.provenance import cli_command, config_record
 from uavtrack_env.runner import Policy, run_episode
 
@@ -145,9 +146,21 @@ def load_any_run(run_dir: Path) -> tuple[str, bool, Policy]:
     )
 
 
+def run_shield(run_dir: Path) -> ExpertConfig:
+    """The shield a run trained with: its preset with its ``--set`` overrides (``args.json`` of a
+    ``train.ppo`` run, ``config.json`` of a ``train.rllib_ppo`` run; a record without a preset
+    was trained on the trainers' default, `RL_PRESET`)."""
+    run_dir = Path(run_dir)
+    if (run_dir / "args.json").exists():
+        record = json.loads((run_dir / "args.json").read_text())
+    else:
+        record = json.loads((run_dir / "config.json").read_text())
+    return expert_config_from(record.get("preset") or RL_PRESET, list(record.get("set", [])))
+
+
 def load_ensemble(run_dirs: list[Path]) -> tuple[str, bool, EnsemblePolicy]:
     """(label, shielded, policy) of the mean of several ``train.ppo`` runs' actions; the runs
-    must agree on the shield and on the Lagrangian."""
+    must agree on the shield (whether, and which) and on the Lagrangian."""
     if len(run_dirs) < 2:
         raise ValueError(f"--ensemble needs at least two run directories, got {len(run_dirs)}")
     loaded = [load_run(d) for d in run_dirs]
@@ -156,6 +169,12 @@ def load_ensemble(run_dirs: list[Path]) -> tuple[str, bool, EnsemblePolicy]:
         raise ValueError(
             f"--ensemble runs must all be shielded or all unshielded, and all PPO or all "
             f"PPO-Lagrangian; got {sorted(kinds)} from {[str(d) for d in run_dirs]}"
+        )
+    shields = {(a.get("preset") or RL_PRESET, tuple(a.get("set", []))) for _, a in loaded}
+    if len(shields) > 1:
+        raise ValueError(
+            f"--ensemble runs must share one shield (preset and --set), got {sorted(shields)} "
+            f"from {[str(d) for d in run_dirs]}"
         )
     from train.ppo import policy_label
 
@@ -339,7 +358,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
     expert = expert_config_from(args.preset, args.set)
     steps = max(1, round(args.duration / DT))
     entrants = _entrants(args, expert)
-    runs = _run_entrants(args, entrants, expert, steps)
+    runs = _run_entrants(args, entrants, steps)
     md = comparison_table(runs)
     args.out.mkdir(parents=True, exist_ok=True)
     header = _header(args)
@@ -357,27 +376,33 @@ def main(argv: list[str] | None = None) -> list[dict]:
     return runs
 
 
-def _entrants(
-    args: argparse.Namespace, expert: ExpertConfig
-) -> list[tuple[str, bool, Callable[[Any], Policy]]]:
-    """(label, shielded, policy factory) of the expert and the given runs; SystemExit if none."""
-    entrants: list[tuple[str, bool, Callable[[Any], Policy]]] = []
+Entrant = tuple[str, ExpertConfig | None, Callable[[Any], Policy]]
+"""(label, the shield's `ExpertConfig` or None, policy factory) of one policy compared."""
+
+
+def _entrants(args: argparse.Namespace, expert: ExpertConfig) -> list[Entrant]:
+    """The expert and the given runs, each shielded run with its own shield; SystemExit if
+    none."""
+    entrants: list[Entrant] = []
     if not args.no_expert:
-        entrants.append(("expert", False, lambda env: evaluate.make_policy("expert", env, expert)))
+        entrants.append(("expert", None, lambda env: evaluate.make_policy("expert", env, expert)))
     for run_dir, label in ((args.ppo, "PPO"), (args.ppo_shield, "PPO + shield")):
         if run_dir is not None:
             policy, run_args = load_run(run_dir)
-            entrants.append((label, bool(run_args["shield"]), lambda env, p=policy: p))
+            shield = run_shield(run_dir) if run_args["shield"] else None
+            entrants.append((label, shield, lambda env, p=policy: p))
     for run_dir in args.run:
         label, shielded, policy = load_any_run(run_dir)
-        entrants.append((label, shielded, lambda env, p=policy: p))
+        entrants.append((label, run_shield(run_dir) if shielded else None, lambda env, p=policy: p))
     for run_dirs in args.ensemble:
         label, shielded, policy = load_ensemble(run_dirs)
-        entrants.append((label, shielded, lambda env, p=policy: p))
+        shield = run_shield(run_dirs[0]) if shielded else None
+        entrants.append((label, shield, lambda env, p=policy: p))
     if args.cloned is not None:
         policy, run_args = load_run(args.cloned, cloned=True)
         label = "cloned + shield" if run_args["shield"] else "cloned"
-        entrants.append((label, bool(run_args["shield"]), lambda env, p=policy: p))
+        shield = run_shield(args.cloned) if run_args["shield"] else None
+        entrants.append((label, shield, lambda env, p=policy: p))
     if not entrants:
         raise SystemExit(
             "nothing to compare: give --ppo, --ppo-shield, --run, --ensemble or --cloned "
@@ -386,22 +411,14 @@ def _entrants(
     return entrants
 
 
-def _run_entrants(
-    args: argparse.Namespace,
-    entrants: list[tuple[str, bool, Callable[[Any], Policy]]],
-    expert: ExpertConfig,
-    steps: int,
-) -> list[dict]:
-    """One episode per entrant and evaluation world; a shielded entrant gets the expert's
-    CBF-QP."""
+def _run_entrants(args: argparse.Namespace, entrants: list[Entrant], steps: int) -> list[dict]:
+    """One episode per entrant and evaluation world."""
     worlds = eval_worlds(args.scenarios, args.seeds, paper_episodes=args.paper_episodes)
     runs = []
     bar = tqdm(total=len(worlds) * len(entrants), desc="compare", disable=args.no_progress)
-    for label, shielded, make_policy in entrants:
+    for label, shield, make_policy in entrants:
         for scenario, init, seed in worlds:
-            env = make_eval_env(
-                scenario, init, steps, dynamics=args.dynamics, shield=expert if shielded else None
-            )
+            env = make_eval_env(scenario, init, steps, dynamics=args.dynamics, shield=shield)
             policy = make_policy(env)
             runs.append(
                 run_policy_episode(

@@ -10,6 +10,7 @@ import pytest
 
 from baselines import compare
 from baselines.compare import EnsemblePolicy
+from uavtrack_env.presets import PRESETS, RL_PRESET, expert_config_from
 
 
 class _Constant:
@@ -39,8 +40,9 @@ def test_the_ensemble_acts_the_mean_of_its_members_and_resets_them():
         EnsemblePolicy([])
 
 
-def _run_dir(path, seed: int, shield: bool):
-    """A train.ppo-shaped output directory holding an untrained SB3 model."""
+def _run_dir(path, seed: int, shield: bool, **saved):
+    """A train.ppo-shaped output directory holding an untrained SB3 model (``saved``: more
+    args.json entries)."""
     pytest.importorskip("stable_baselines3")
     from stable_baselines3 import PPO
 
@@ -50,7 +52,7 @@ def _run_dir(path, seed: int, shield: bool):
     vec = VectorSharedPolicyVecEnv(1, scenario="random", max_cycles=20)
     PPO("MlpPolicy", vec, seed=seed, device="cpu").save(path / "model.zip")
     vec.close()
-    record = {"shield": shield, "lagrangian": False, "frame_stack": 1, "num_timesteps": 0}
+    record = {"shield": shield, "lagrangian": False, "frame_stack": 1, "num_timesteps": 0, **saved}
     (path / "args.json").write_text(json.dumps(record))
     return path
 
@@ -81,3 +83,33 @@ def test_an_ensemble_must_agree_on_the_shield_and_have_two_runs(tmp_path):
         compare.load_ensemble([shielded, plain])
     with pytest.raises(ValueError, match="at least two run directories"):
         compare.load_ensemble([shielded])
+
+
+def test_a_shielded_run_is_evaluated_behind_the_shield_it_trained_with(tmp_path):
+    """`run_shield` rebuilds a run's shield from its preset and --set (train.ppo's args.json,
+    train.rllib_ppo's config.json; no preset: the trainers' default); compare's own --preset
+    and --set configure the expert only."""
+    sets = ["cbf.gamma_o=0.5"]
+    run = _run_dir(tmp_path / "a", 0, shield=True, preset="tuned", set=sets)
+    want = expert_config_from("tuned", sets)
+    assert compare.run_shield(run) == want
+    assert compare.run_shield(_run_dir(tmp_path / "b", 1, shield=True)) == PRESETS[RL_PRESET]
+    rllib = tmp_path / "rllib"
+    rllib.mkdir()
+    (rllib / "config.json").write_text(json.dumps({"preset": "paper", "set": sets}))
+    assert compare.run_shield(rllib) == expert_config_from("paper", sets)
+    args = compare.parse_args(["--no-expert", "--run", str(run), "--set", "cbf.gamma_o=0.2"])
+    [(label, shield, _)] = compare._entrants(args, expert_config_from("tuned", args.set))
+    assert label == "PPO + shield" and shield == want
+    plain = _run_dir(tmp_path / "c", 2, shield=False, preset="tuned")
+    args = compare.parse_args(["--run", str(plain)])
+    assert [shield for _, shield, _ in compare._entrants(args, want)] == [None, None]
+
+
+def test_an_ensemble_must_share_one_shield(tmp_path):
+    a = _run_dir(tmp_path / "a", 0, shield=True, preset="tuned")
+    b = _run_dir(tmp_path / "b", 1, shield=True, preset="rl")
+    c = _run_dir(tmp_path / "c", 2, shield=True)  # no preset: the trainers' default, rl
+    assert compare.load_ensemble([b, c])[1] is True
+    with pytest.raises(ValueError, match="share one shield"):
+        compare.load_ensemble([a, b])

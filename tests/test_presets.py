@@ -10,6 +10,7 @@ from uavtrack_env.control.config import NMPCConfig
 from uavtrack_env.presets import (
     DEFAULT_PRESET,
     PRESETS,
+    RL_PRESET,
     ExpertConfig,
     apply_overrides,
     expert_config,
@@ -29,6 +30,16 @@ def test_presets_differ_where_documented():
     assert DEFAULT_PRESET == "tuned" and expert_config() == tuned
     for cfg in PRESETS.values():  # R_s and R_c always come from the world
         assert cfg.cbf.r_s is None and cfg.cbf.r_c is None
+
+
+def test_the_rl_preset_is_tuned_with_the_team_mates_in_the_occlusion_rows():
+    tuned, rl = PRESETS["tuned"], PRESETS[RL_PRESET]
+    assert tuned.cbf.team_mate_radius == 0.0  # as in the paper: the obstacles only
+    assert rl.cbf.team_mate_radius is None  # the world's UAV radius
+    assert rl.cbf.resolve(uav_radius=0.3).team_mate_radius == 0.3
+    assert rl == dataclasses.replace(
+        tuned, cbf=dataclasses.replace(tuned.cbf, team_mate_radius=None)
+    )
 
 
 def test_overrides_replace_nested_fields_only():

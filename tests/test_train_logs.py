@@ -17,6 +17,7 @@ from train import ppo
 from train.intervention import InterventionPenalty
 from train.lagrangian import LagrangianConfig, LagrangianReward
 from train.world import TrainingWorld
+from uavtrack_env.presets import PRESETS, RL_PRESET
 from uavtrack_env.wrappers.sb3 import AgentVecMonitor
 
 
@@ -142,6 +143,29 @@ def test_resume_keeps_the_image_point_the_run_trained_with(tmp_path, saved, expe
     (tmp_path / "args.json").write_text(json.dumps({"image_weight": 30.0, **saved}))
     args = ppo.make_args(resume=tmp_path)
     assert args.image_point == expected and args.image_weight == 30.0 and args.out == tmp_path
+
+
+def test_the_trainers_shield_covers_the_team_mates():
+    """The trainers default to the rl preset: the env's occlusion cost counts a team-mate on the
+    sight line, and that preset's rows cover them."""
+    from train import rllib_ppo
+
+    args = ppo.parse_args(["--out", "x"])
+    assert args.preset == RL_PRESET == "rl"
+    assert ppo.expert_settings(args) == PRESETS["rl"]
+    assert ppo.expert_settings(args).cbf.team_mate_radius is None
+    assert rllib_ppo.parse_args(["--out", "x"]).preset == "rl"
+    assert rllib_ppo.RLlibPPOConfig().expert == PRESETS["rl"]
+
+
+@pytest.mark.parametrize(
+    ("saved", "expected"), [({}, "tuned"), ({"preset": "tuned"}, "tuned"), ({"preset": "rl"}, "rl")]
+)
+def test_resume_keeps_the_shield_the_run_trained_with(tmp_path, saved, expected):
+    """A run trained on the tuned preset (or predating ``preset``) resumes on it."""
+    (tmp_path / "args.json").write_text(json.dumps(saved))
+    args = ppo.make_args(resume=tmp_path)
+    assert args.preset == expected and ppo.expert_settings(args) == PRESETS[expected]
 
 
 def test_world_density_options_reach_the_random_worlds():

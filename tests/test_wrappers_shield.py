@@ -175,6 +175,50 @@ def test_same_policies_unshielded_violate(policy):
         assert free["disconnection"] > 0, free
 
 
+def _hold(info: dict, goal: np.ndarray) -> np.ndarray:
+    """Normalised action flying to ``goal`` (full speed from 2 m away) while facing the car."""
+    p, yaw = info["own"]["position"], info["own"]["yaw"]
+    to_car = info["truth"]["target_position"] - p
+    turn = math.atan2(math.sin(math.atan2(to_car[1], to_car[0]) - yaw),
+                      math.cos(math.atan2(to_car[1], to_car[0]) - yaw))  # fmt: skip
+    return np.clip(np.r_[world_to_cam_vec(goal - p, yaw) / 2.0, -turn / 0.6], -1.0, 1.0)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("preset", ["tuned", "rl"])
+def test_the_rl_preset_keeps_a_team_mate_off_the_sight_line(preset):
+    """``uav_0`` flies into the shadow of ``uav_1`` (2.6 m behind it on the line from the car,
+    12 m away), where the env counts the car occluded. The tuned preset's occlusion rows cover
+    the obstacles only and let it; the rl preset's cover the team-mates too and keep the line
+    clear."""
+    env = uavtrack_v0.parallel_env(
+        scenario="random", random_world={"n_obstacles": (0, 0)}, max_cycles=240
+    )
+    shield = CBFShield(env, expert_config(preset))
+    shield.reset(seed=0)
+    car = env.unwrapped.target.center()
+    posts = {"uav_1": [-12.0, 0.0, 2.0], "uav_2": [-12.0, -8.0, 2.0]}
+    start = {"uav_0": car + [-16.0, 6.0, 2.0], **{a: car + o for a, o in posts.items()}}
+    infos = _place(shield, start)
+    occluded = collided = 0
+    for _ in range(200):
+        car = infos["uav_1"]["truth"]["target_position"]
+        mate = infos["uav_1"]["own"]["position"]
+        shadow = car + (mate - car) * (1.0 + 2.6 / np.linalg.norm(mate - car))
+        actions = {a: _hold(infos[a], car + posts[a]) for a in posts}
+        actions["uav_0"] = _hold(infos["uav_0"], shadow)
+        infos = shield.step(actions)[4]
+        assert set(infos) == {"uav_0", "uav_1", "uav_2"}
+        occluded += infos["uav_0"]["violations"]["occlusion"]
+        collided += any(i["violations"]["collision"] for i in infos.values())
+    shield.close()
+    assert collided == 0
+    if preset == "rl":
+        assert occluded == 0
+    else:
+        assert occluded > 30  # the case is hostile: without the team-mate rows it occludes
+
+
 # ------------------------------------------------------------------ the velocity-lag plant
 def test_lag_plant_gets_second_order_rows_by_default(make_env):
     raw = make_env(False, scenario="A", dynamics={"model": "lag"})

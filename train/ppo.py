@@ -68,7 +68,7 @@ from baselines.compare import SB3Policy, eval_worlds, make_eval_env, run_policy_
 from baselines.evaluate import table
 from uavtrack_env.config import DT
 from uavtrack_env.presets import (
-    DEFAULT_PRESET,
+    RL_PRESET,
     ExpertConfig,
     add_preset_arguments,
     expert_config_from,
@@ -94,7 +94,7 @@ ENV_FIELDS = (
 )
 """Arguments that define the training env and the policy's input; ``--resume`` takes them from
 the run's args.json."""
-OLDER_RUNS = {"image_point": "center"}
+OLDER_RUNS = {"image_point": "center", "preset": "tuned"}
 """What a run whose args.json predates an env-defining field trained with, where that is not
 the field's default (``--resume`` keeps it)."""
 _WORLD_HELP = {f.name: f.metadata for f in dataclasses.fields(TrainingWorld)}
@@ -114,7 +114,7 @@ class Args:
 
     shield: bool = field(default=True, metadata={"help": "pass every action through CBFShield"})
     preset: str = field(
-        default=DEFAULT_PRESET, metadata={"help": "the shield's and the expert's ExpertConfig"}
+        default=RL_PRESET, metadata={"help": "the shield's and the expert's ExpertConfig"}
     )
     set: tuple[str, ...] = field(
         default=(), metadata={"help": "FIELD=VALUE overrides of the preset (repeatable)"}
@@ -298,7 +298,7 @@ def parse_args(argv: list[str] | None = None) -> Args:
         description=__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    add_preset_arguments(ap)
+    add_preset_arguments(ap, RL_PRESET)
     for f in dataclasses.fields(Args):
         if f.name in ("preset", "set"):
             continue

@@ -28,8 +28,8 @@ from pettingzoo.utils.wrappers import BaseParallelWrapper
 
 from uavtrack_env.config import EnvConfig
 from uavtrack_env.presets import (
-    DEFAULT_PRESET,
     PRESETS,
+    RL_PRESET,
     ExpertConfig,
     add_preset_arguments,
     expert_config_from,
@@ -51,7 +51,7 @@ class RLlibPPOConfig:
 
     shield: bool = True
     """Wrap the env in ``uavtrack_env.wrappers.CBFShield`` (the expert's CBF-QP (47))"""
-    expert: ExpertConfig = field(default_factory=lambda: PRESETS[DEFAULT_PRESET])
+    expert: ExpertConfig = field(default_factory=lambda: PRESETS[RL_PRESET])
     """The shield's settings (`uavtrack_env.presets`; the CLI's ``--preset`` and ``--set``)."""
     num_env_runners: int = 0
     """Remote EnvRunner actors; 0 samples in the driver process (no extra actor)."""
@@ -319,13 +319,16 @@ def train(
     out: str | Path,
     log: Callable[[str], None] = print,
     preset: str | None = None,
+    overrides: Sequence[str] = (),
     command: str | None = None,
     video_every: int = 0,
     video_seconds: float = 10.0,
 ) -> tuple[Path, list[dict[str, float]]]:
     """Run ``iterations`` PPO iterations (Ray must be initialised), save a checkpoint in ``out``.
 
-    Returns the checkpoint directory and one summary per iteration (also in ``progress.jsonl``).
+    ``preset`` and ``overrides`` (its ``--set``) name ``cfg.expert`` in ``config.json``, from which
+    ``baselines.compare`` rebuilds the run's shield. Returns the checkpoint directory and one
+    summary per iteration (also in ``progress.jsonl``).
     Every ``video_every`` iterations (0: never), a video of the policy so far in ``out/videos``
     (`train.video.record_policy`, from a checkpoint in ``out/video-checkpoint``).
     """
@@ -366,6 +369,7 @@ def train(
         cfg.expert,
         command,
         iterations=iterations,
+        set=list(overrides),
         rllib=settings,
     )
     (out / "config.json").write_text(json.dumps(record, indent=2))
@@ -466,7 +470,7 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
         prog="python -m train.rllib_ppo", description=__doc__.split("\n")[0]
     )
     p.add_argument("--shield", action=argparse.BooleanOptionalAction, default=True)
-    add_preset_arguments(p)
+    add_preset_arguments(p, RL_PRESET)
     p.add_argument("--iterations", type=int, default=10)
     p.add_argument("--num-env-runners", type=int, default=0)
     p.add_argument("--num-envs-per-env-runner", type=int, default=1)
@@ -545,6 +549,7 @@ def main(argv: Sequence[str] | None = None) -> Path:
             args.iterations,
             args.out,
             preset=args.preset,
+            overrides=args.set,
             command=command,
             video_every=args.video_every,
             video_seconds=args.video_seconds,

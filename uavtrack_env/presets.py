@@ -10,6 +10,9 @@ gains, QP options, margins, the viewpoint layer) is one `ExpertConfig`. `ExpertP
 * ``"paper"``: the paper's equations exactly: NMPC (18)-(19), occlusion rows (38)-(45) on the box
   centres with n-dot = 0 (43), first-order CBF rows (integrator (3)), the constant x2*.
 * ``"paper-planner"``: the paper's NMPC (18)-(19) with the tuned preset's rows and viewpoint.
+* ``"rl"`` (`RL_PRESET`, the trainers' default): ``"tuned"`` whose occlusion rows also cover the
+  team-mates (`CBFConfig.team_mate_radius` = the UAV radius). The env's occlusion cost counts a
+  team-mate on the sight line, so the shield of a learned policy keeps it off that line too.
 
 ``expert_config("tuned", cbf={"gamma_o": 0.5})`` overrides fields; `apply_overrides` reads the
 CLIs' ``--set cbf.gamma_o=0.5``.
@@ -179,37 +182,42 @@ def _parse(kind: Any, text: str, path: str) -> Any:
 
 
 _TUNED_ROWS = CBFConfig(occlusion_model="moving-target", occlusion_point="edges")
+_TUNED = ExpertConfig(
+    ukf=UKFConfig(truncated_v_hold_height=True, fit_settle_time=2.0),
+    nmpc=NMPCConfig(
+        terminal_weight="lqr",
+        yaw_rate_reference="target-turn",
+        safety_rows=4,
+        safety_row_stages=10,
+    ),
+    cbf=_TUNED_ROWS,
+    viewpoint=ViewpointConfig(),
+    lag_aware=True,
+)
 
 PRESETS: dict[str, ExpertConfig] = {
-    "tuned": ExpertConfig(
-        ukf=UKFConfig(truncated_v_hold_height=True, fit_settle_time=2.0),
-        nmpc=NMPCConfig(
-            terminal_weight="lqr",
-            yaw_rate_reference="target-turn",
-            safety_rows=4,
-            safety_row_stages=10,
-        ),
-        cbf=_TUNED_ROWS,
-        viewpoint=ViewpointConfig(),
-        lag_aware=True,
-    ),
+    "tuned": _TUNED,
     "paper": ExpertConfig(),
     "paper-planner": ExpertConfig(cbf=_TUNED_ROWS, viewpoint=ViewpointConfig(), lag_aware=True),
+    "rl": dataclasses.replace(_TUNED, cbf=dataclasses.replace(_TUNED_ROWS, team_mate_radius=None)),
 }
 """Named `ExpertConfig` s (module docstring)."""
 
 DEFAULT_PRESET = "tuned"
-"""The preset of every entry point unless told otherwise."""
+"""The preset of every entry point but the trainers (`RL_PRESET`) unless told otherwise."""
+
+RL_PRESET = "rl"
+"""The trainers' preset (`train.ppo`, `train.rllib_ppo`): their shield and demonstrating expert."""
 
 
-def add_preset_arguments(parser: Any) -> None:
-    """``--preset NAME`` and repeatable ``--set FIELD=VALUE`` on an argparse parser; read them
-    back with ``expert_config_from(args.preset, args.set)``."""
+def add_preset_arguments(parser: Any, default: str = DEFAULT_PRESET) -> None:
+    """``--preset NAME`` (``default``) and repeatable ``--set FIELD=VALUE`` on an argparse
+    parser; read them back with ``expert_config_from(args.preset, args.set)``."""
     parser.add_argument(
         "--preset",
-        default=DEFAULT_PRESET,
+        default=default,
         choices=sorted(PRESETS),
-        help=f"the UAVs' controller settings (uavtrack_env.presets; default {DEFAULT_PRESET})",
+        help=f"the UAVs' controller settings (uavtrack_env.presets; default {default})",
     )
     parser.add_argument(
         "--set",
