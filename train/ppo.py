@@ -8,8 +8,9 @@ or PPO-Lagrangian.
 
 One policy drives every UAV: each agent of each world is one row of an SB3 VecEnv
 (`uavtrack_env.wrappers.sb3`: `VectorSharedPolicyVecEnv`, all ``--n-envs`` worlds in one batched
-step); with ``--shield`` every action passes the expert's CBF-QP in training (`VectorCBFShield`)
-and in evaluation (`CBFShield`); with
+step); with ``--shield`` every action passes the CBF-QP of ``--preset`` (default ``rl``: the
+expert's rows with the team-mates as occluders too) in training (`VectorCBFShield`) and in
+evaluation (`CBFShield`); with
 ``--lagrangian`` the cost is penalised by an adapted multiplier (`train.lagrangian`). Writes
 into DIR: ``tb/``
 (TensorBoard: ``rollout/ep_cost_mean``, ``safety/*_rate``, ``lagrangian/lambda``),
