@@ -148,14 +148,17 @@ def load_any_run(run_dir: Path) -> tuple[str, bool, Policy]:
 
 def run_shield(run_dir: Path) -> ExpertConfig:
     """The shield a run trained with: its preset with its ``--set`` overrides (``args.json`` of a
-    ``train.ppo`` run, ``config.json`` of a ``train.rllib_ppo`` run; a record without a preset
-    was trained on the trainers' default, `RL_PRESET`)."""
+    ``train.ppo`` run, ``config.json`` of a ``train.rllib_ppo`` run)."""
+    from train.ppo import OLDER_RUNS
+
     run_dir = Path(run_dir)
     if (run_dir / "args.json").exists():
         record = json.loads((run_dir / "args.json").read_text())
-    else:
+        preset = record.get("preset", OLDER_RUNS["preset"])
+    else:  # train.rllib_ppo.train records preset None unless told: RLlibPPOConfig's default
         record = json.loads((run_dir / "config.json").read_text())
-    return expert_config_from(record.get("preset") or RL_PRESET, list(record.get("set", [])))
+        preset = record.get("preset") or RL_PRESET
+    return expert_config_from(preset, list(record.get("set", [])))
 
 
 def load_ensemble(run_dirs: list[Path]) -> tuple[str, bool, EnsemblePolicy]:
@@ -170,10 +173,11 @@ def load_ensemble(run_dirs: list[Path]) -> tuple[str, bool, EnsemblePolicy]:
             f"--ensemble runs must all be shielded or all unshielded, and all PPO or all "
             f"PPO-Lagrangian; got {sorted(kinds)} from {[str(d) for d in run_dirs]}"
         )
-    shields = {(a.get("preset") or RL_PRESET, tuple(a.get("set", []))) for _, a in loaded}
-    if len(shields) > 1:
+    shields = [run_shield(d) for d in run_dirs]
+    if any(s != shields[0] for s in shields):
+        presets = [(a.get("preset"), a.get("set", [])) for _, a in loaded]
         raise ValueError(
-            f"--ensemble runs must share one shield (preset and --set), got {sorted(shields)} "
+            f"--ensemble runs must share one shield (preset and --set), got {presets} "
             f"from {[str(d) for d in run_dirs]}"
         )
     from train.ppo import policy_label

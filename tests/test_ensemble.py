@@ -93,11 +93,14 @@ def test_a_shielded_run_is_evaluated_behind_the_shield_it_trained_with(tmp_path)
     run = _run_dir(tmp_path / "a", 0, shield=True, preset="tuned", set=sets)
     want = expert_config_from("tuned", sets)
     assert compare.run_shield(run) == want
-    assert compare.run_shield(_run_dir(tmp_path / "b", 1, shield=True)) == PRESETS[RL_PRESET]
+    older = _run_dir(tmp_path / "b", 1, shield=True)  # args.json without a preset: tuned's
+    assert compare.run_shield(older) == PRESETS["tuned"]
     rllib = tmp_path / "rllib"
     rllib.mkdir()
     (rllib / "config.json").write_text(json.dumps({"preset": "paper", "set": sets}))
     assert compare.run_shield(rllib) == expert_config_from("paper", sets)
+    (rllib / "config.json").write_text(json.dumps({"preset": None}))  # train() told no preset
+    assert compare.run_shield(rllib) == PRESETS[RL_PRESET]
     args = compare.parse_args(["--no-expert", "--run", str(run), "--set", "cbf.gamma_o=0.2"])
     [(label, shield, _)] = compare._entrants(args, expert_config_from("tuned", args.set))
     assert label == "PPO + shield" and shield == want
@@ -109,7 +112,9 @@ def test_a_shielded_run_is_evaluated_behind_the_shield_it_trained_with(tmp_path)
 def test_an_ensemble_must_share_one_shield(tmp_path):
     a = _run_dir(tmp_path / "a", 0, shield=True, preset="tuned")
     b = _run_dir(tmp_path / "b", 1, shield=True, preset="rl")
-    c = _run_dir(tmp_path / "c", 2, shield=True)  # no preset: the trainers' default, rl
-    assert compare.load_ensemble([b, c])[1] is True
+    c = _run_dir(tmp_path / "c", 2, shield=True)  # older: no preset, tuned's
+    d = _run_dir(tmp_path / "d", 3, shield=True, preset="tuned", set=["cbf.team_mate_radius=none"])
+    assert compare.load_ensemble([a, c])[1] is True
+    assert compare.load_ensemble([b, d])[1] is True  # the same shield, named two ways
     with pytest.raises(ValueError, match="share one shield"):
         compare.load_ensemble([a, b])
