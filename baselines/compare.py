@@ -393,26 +393,28 @@ def _entrants(args: argparse.Namespace, expert: ExpertConfig) -> list[Entrant]:
     for run_dir, label in ((args.ppo, "PPO"), (args.ppo_shield, "PPO + shield")):
         if run_dir is not None:
             policy, run_args = load_run(run_dir)
-            shield = run_shield(run_dir) if run_args["shield"] else None
-            entrants.append((label, shield, lambda env, p=policy: p))
+            entrants.append((label, _shield(run_dir, run_args["shield"]), lambda env, p=policy: p))
     for run_dir in args.run:
         label, shielded, policy = load_any_run(run_dir)
-        entrants.append((label, run_shield(run_dir) if shielded else None, lambda env, p=policy: p))
+        entrants.append((label, _shield(run_dir, shielded), lambda env, p=policy: p))
     for run_dirs in args.ensemble:
         label, shielded, policy = load_ensemble(run_dirs)
-        shield = run_shield(run_dirs[0]) if shielded else None
-        entrants.append((label, shield, lambda env, p=policy: p))
+        entrants.append((label, _shield(run_dirs[0], shielded), lambda env, p=policy: p))
     if args.cloned is not None:
         policy, run_args = load_run(args.cloned, cloned=True)
         label = "cloned + shield" if run_args["shield"] else "cloned"
-        shield = run_shield(args.cloned) if run_args["shield"] else None
-        entrants.append((label, shield, lambda env, p=policy: p))
+        entrants.append((label, _shield(args.cloned, run_args["shield"]), lambda env, p=policy: p))
     if not entrants:
         raise SystemExit(
             "nothing to compare: give --ppo, --ppo-shield, --run, --ensemble or --cloned "
             "(or drop --no-expert)"
         )
     return entrants
+
+
+def _shield(run_dir: Path, shielded: bool) -> ExpertConfig | None:
+    """The shield a run is evaluated behind: the one it trained with, or None."""
+    return run_shield(run_dir) if shielded else None
 
 
 def _run_entrants(args: argparse.Namespace, entrants: list[Entrant], steps: int) -> list[dict]:
